@@ -1,0 +1,30 @@
+# splitbench: a new user needs only `make reproduce` and `make test`; both do the set-up.
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+PYTEST_ARGS ?=
+
+.PHONY: setup test smoke reproduce report bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+smoke: $(STAMP)
+	$(VENV)/bin/splitbench reproduce --preset smoke
+
+reproduce: $(STAMP)
+	$(VENV)/bin/splitbench reproduce --preset quick
+
+report: $(STAMP)
+	$(VENV)/bin/splitbench report
+
+bench: $(STAMP)
+	$(VENV)/bin/splitbench bench tracing
+
+clean:
+	rm -rf results report build *.egg-info

@@ -1,0 +1,191 @@
+"""Primary-visibility buffer (G-buffer) from pixel-centre primary rays.
+
+Tracing one ray through each pixel centre gives the same visible surface as rasterisation sampled at pixel
+centres, on either backend. The camera model is Mitsuba's ``perspective`` sensor with ``fov_axis='x'``, so
+pixel (row i, column j) looks along ``forward + (2 s_x - 1) tan(fov/2) right - (2 s_y - 1) tan(fov/2)/aspect up``
+with ``s = ((j + 0.5)/W, (i + 0.5)/H)``; :func:`project` is its inverse.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from suite.errors import UserError
+
+
+@dataclass
+class GBuffer:
+    position: np.ndarray  # (H, W, 3) float32 world position (0 for background)
+    normal: np.ndarray  # (H, W, 3) shading normal, on the camera's side of the surface
+    geo_normal: np.ndarray  # (H, W, 3) geometric normal, on the camera's side
+    albedo: np.ndarray  # (H, W, 3) diffuse reflectance
+    emission: np.ndarray  # (H, W, 3) emitted radiance toward the camera (area lights seen directly)
+    depth: np.ndarray  # (H, W) distance along the primary ray, inf for background
+    prim: np.ndarray  # (H, W) int32 global face index, -1 for background
+    valid: np.ndarray  # (H, W) bool, a surface was hit
+    motion: np.ndarray  # (H, W, 2) float32 (dx, dy) in pixels: previous-frame position = current + motion
+    view_dir: np.ndarray  # (H, W, 3) unit primary-ray directions
+    camera_position: np.ndarray  # (3,)
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return int(self.depth.shape[1]), int(self.depth.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        return sum(getattr(self, f).nbytes for f in ("position", "normal", "albedo", "depth", "prim", "motion"))
+
+
+def check_resolution(resolution) -> tuple[int, int]:
+    try:
+        width, height = (int(x) for x in resolution)
+    except (TypeError, ValueError):
+        raise UserError(f"resolution {resolution!r} is not WIDTHxHEIGHT") from None
+    if width <= 0 or height <= 0:
+        raise UserError(f"resolution {width}x{height} must be positive in both dimensions")
+    return width, height
+
+
+def camera_rays(pose, fov_deg: float, width: int, height: int, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre rays, row-major from the top-left pixel: origins (N,3) and unit directions (N,3)."""
+    forward, right, up = pose.basis()
+    tan_x = np.tan(np.radians(fov_deg) / 2.0)
+    aspect = width / height
+    sx = (np.arange(width) + 0.5) / width
+    sy = (np.arange(height) + 0.5) / height
+    px = (2.0 * sx - 1.0) * tan_x
+    py = -(2.0 * sy - 1.0) * tan_x / aspect
+    d = forward[None, None, :] + px[None, :, None] * right[None, None, :] + py[:, None, None] * up[None, None, :]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    dirs = d.reshape(-1, 3).astype(dtype)
+    origins = np.broadcast_to(np.asarray(pose.position, dtype), dirs.shape).copy()
+    return origins, dirs
+
+
+def project(points: np.ndarray, pose, fov_deg: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """World points → continuous pixel coordinates (x, y) (pixel centres at j+0.5, i+0.5) and view depth z.
+
+    Points behind the camera get z <= 0; their pixel coordinates are meaningless.
+    """
+    forward, right, up = pose.basis()
+    rel = np.asarray(points, np.float64) - np.asarray(pose.position, np.float64)
+    lx, ly, lz = rel @ right, rel @ up, rel @ forward
+    tan_x = np.tan(np.radians(fov_deg) / 2.0)
+    aspect = width / height
+    safe_z = np.where(np.abs(lz) > 1e-12, lz, 1e-12)
+    x = 0.5 * (1.0 + lx / (safe_z * tan_x)) * width
+    y = 0.5 * (1.0 - ly * aspect / (safe_z * tan_x)) * height
+    return np.stack([x, y], axis=-1), lz
+
+
+def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear, repeating lookup with Mitsuba's ``bitmap`` conventions (row 0 at v = 0, texel centres at +0.5)."""
+    h, w = texture.shape[:2]
+    x = uv[:, 0] * w - 0.5
+    y = uv[:, 1] * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0i, y0i = x0.astype(np.int64) % w, y0.astype(np.int64) % h
+    x1i, y1i = (x0i + 1) % w, (y0i + 1) % h
+    t00, t10 = texture[y0i, x0i], texture[y0i, x1i]
+    t01, t11 = texture[y1i, x0i], texture[y1i, x1i]
+    return ((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10 + (1 - fx) * fy * t01 + fx * fy * t11).astype(np.float32)
+
+
+def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=None):
+    """Interpolated position, geometric and shading normals, albedo and emission for hit records.
+
+    With float64 rays (``ray_o``, ``ray_d``) the position is the exact intersection of the ray with the hit
+    triangle's plane, computed in float64: the tracers' float32 distance carries an error that grows with the
+    distance from the origin, which would shift shadow edges in scenes far from the origin.
+    """
+    faces = scene.faces[prim]
+    w = np.stack([1.0 - u - v, u, v], axis=-1).astype(np.float64)[..., None]
+    tri = positions[faces].astype(np.float64)
+    ng = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ng /= np.maximum(np.linalg.norm(ng, axis=-1, keepdims=True), 1e-30)
+    p = (tri * w).sum(axis=1)
+    if ray_o is not None:
+        denom = np.einsum("ij,ij->i", ray_d, ng)
+        ok = np.abs(denom) > 1e-12
+        t_plane = np.einsum("ij,ij->i", tri[:, 0] - ray_o, ng) / np.where(ok, denom, 1.0)
+        p = np.where(ok[:, None], ray_o + t_plane[:, None] * ray_d, p)
+    ns = (normals[faces].astype(np.float64) * w).sum(axis=1)
+    ns_len = np.linalg.norm(ns, axis=-1, keepdims=True)
+    ns = np.where(ns_len > 1e-12, ns / np.maximum(ns_len, 1e-30), ng)
+    mat = scene.face_material[prim]
+    albedo = scene.face_albedo()[prim].astype(np.float32)
+    for mid, m in enumerate(scene.materials):
+        if m.albedo_texture is not None:
+            sel = mat == mid
+            if sel.any():
+                uv = (scene.uvs[faces[sel]].astype(np.float64) * w[sel]).sum(axis=1)
+                albedo[sel] = lookup_texture(m.albedo_texture, uv)
+    emission_table = np.stack([m.emission for m in scene.materials]).astype(np.float32)
+    return p, ng, ns, albedo, emission_table[mat]
+
+
+def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None) -> GBuffer:
+    """Traces pixel-centre primary rays for the camera pose at ``t_s``.
+
+    ``motion`` maps each pixel to where its surface point was in the frame at ``prev_t_s`` (camera motion and
+    rigid object motion); it is zero when ``prev_t_s`` is None.
+    """
+    width, height = check_resolution(resolution or scene.camera.resolution)
+    tracer.update(t_s)
+    pose = scene.camera.pose_at(t_s)
+    origins, dirs = camera_rays(pose, scene.camera.fov_deg, width, height)
+    hits = tracer.intersect(origins, dirs)
+    n = width * height
+    valid = hits.prim >= 0
+    position = np.zeros((n, 3), np.float32)
+    normal = np.zeros((n, 3), np.float32)
+    geo = np.zeros((n, 3), np.float32)
+    albedo = np.zeros((n, 3), np.float32)
+    emission = np.zeros((n, 3), np.float32)
+    idx = np.nonzero(valid)[0]
+    if len(idx):
+        positions = scene.positions_at(t_s)
+        normals = scene.normals_at(t_s)
+        o64, d64 = camera_rays(pose, scene.camera.fov_deg, width, height, dtype=np.float64)
+        p, ng, ns, alb, em = surface_attributes(scene, positions, normals, hits.prim[idx], hits.u[idx], hits.v[idx],
+                                                o64[idx], d64[idx])
+        d = dirs[idx].astype(np.float64)
+        # Face both normals toward the viewer: surfaces are shaded on the side they are seen from.
+        flip = np.sign(np.einsum("ij,ij->i", ng, d))[:, None]
+        flip[flip == 0] = 1.0
+        front_facing = flip[:, 0] < 0  # the geometric normal already faced the camera
+        ng_view = -flip * ng
+        ns_view = np.where(np.einsum("ij,ij->i", ns, ng_view)[:, None] < 0, -ns, ns)
+        position[idx] = p
+        geo[idx] = ng_view
+        normal[idx] = ns_view
+        albedo[idx] = alb
+        # Area emitters emit on the side their normal points to (Mitsuba's `area` is one-sided).
+        emission[idx] = np.where(front_facing[:, None], em, 0.0)
+    motion = np.zeros((n, 2), np.float32)
+    if prev_t_s is not None and len(idx):
+        prev_points = position[idx].astype(np.float64)
+        if scene.object_animations:
+            prev_points = _points_at_previous_time(scene, hits.prim[idx], prev_points, t_s, prev_t_s)
+        prev_xy, _ = project(prev_points, scene.camera.pose_at(prev_t_s), scene.camera.fov_deg, width, height)
+        cur_xy = np.stack([(idx % width) + 0.5, (idx // width) + 0.5], axis=-1)
+        motion[idx] = (prev_xy - cur_xy).astype(np.float32)
+    depth = np.where(valid, hits.t, np.inf).astype(np.float32)
+    hw = (height, width)
+    return GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
+                   albedo=albedo.reshape(*hw, 3), emission=emission.reshape(*hw, 3), depth=depth.reshape(hw),
+                   prim=hits.prim.reshape(hw), valid=valid.reshape(hw), motion=motion.reshape(*hw, 2),
+                   view_dir=dirs.reshape(*hw, 3), camera_position=np.asarray(pose.position, np.float32))
+
+
+def _points_at_previous_time(scene, prim, points, t_s, prev_t_s):
+    obj = scene.face_object[prim]
+    out = points.copy()
+    for anim in scene.object_animations:
+        sel = obj == anim.object_id
+        if sel.any():
+            m = anim.transform_at(prev_t_s) @ np.linalg.inv(anim.transform_at(t_s))
+            out[sel] = points[sel] @ m[:3, :3].T + m[:3, 3]
+    return out

@@ -1,0 +1,50 @@
+"""Scenes: the shared model, embedded defaults and Mitsuba scenes.
+
+``load(spec)`` accepts an embedded scene name (see :func:`list_scenes`), a path to a Mitsuba 3 XML file,
+or a Mitsuba scene dict.
+"""
+from __future__ import annotations
+
+import os
+
+from suite.errors import UserError
+from suite.scene.model import (CameraKey, CameraPath, CameraPose, LightAnimation, Material, PointLight,
+                               RigidAnimation, Scene)
+
+__all__ = ["load", "list_scenes", "Scene", "Material", "PointLight", "CameraKey", "CameraPath", "CameraPose",
+           "RigidAnimation", "LightAnimation"]
+
+_cache: dict[str, Scene] = {}
+
+
+def list_scenes() -> dict[str, str]:
+    """Embedded scene names with a one-line description."""
+    from suite.scene.embedded import EMBEDDED
+
+    def first_line(fn):
+        doc = (fn.__doc__ or "").strip().splitlines()
+        return doc[0] if doc else ""
+
+    return {name: first_line(EMBEDDED[name]) for name in sorted(EMBEDDED)}
+
+
+def load(spec) -> Scene:
+    """An embedded scene by name, a Mitsuba XML scene by path, or a Mitsuba scene dict."""
+    if isinstance(spec, Scene):
+        return spec
+    if isinstance(spec, dict):
+        from suite.scene.mitsuba_io import load_mitsuba
+
+        return load_mitsuba(spec)
+    spec = os.fspath(spec)
+    from suite.scene.embedded import EMBEDDED
+
+    if spec in EMBEDDED:
+        if spec not in _cache:
+            _cache[spec] = EMBEDDED[spec]()
+        return _cache[spec]
+    if spec.endswith(".xml") or os.sep in spec:
+        from suite.scene.mitsuba_io import load_mitsuba
+
+        return load_mitsuba(spec)
+    raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml)")

@@ -1,0 +1,186 @@
+"""Shared direct-lighting kernels, in Mitsuba's units.
+
+Lambertian surfaces (BRDF = rho / pi), lit by
+
+* point lights of intensity I (W/sr): L = rho/pi * I * cos(theta) / d^2, with hard shadows (one shadow ray
+  per pixel and light), and
+* triangle area lights of radiance L_e (one-sided, emitting along their normal): the area form of the
+  rendering equation, L = integral of rho/pi * L_e * cos(theta_x) cos(theta_y) / d^2 dA, estimated with
+  ``n`` stratified samples per pixel (soft shadows).
+
+These are the expectations that Mitsuba's ``direct`` integrator estimates, so the images agree with it up to
+its noise (see tests/core/test_direct_lighting.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from suite.trace.robust import offset_ray_origin
+
+INV_PI = 1.0 / np.pi
+# A shadow ray stops this fraction short of the light, so the light's own surface (or a surface the light
+# sits on) never shadows it.
+SHADOW_TMAX_SCALE = 1.0 - 1e-4
+
+
+def min_light_distance(scene) -> float:
+    """Distances below this are clamped, so a light exactly on a surface gives a finite (bright) result."""
+    return 1e-4 * max(scene.extent, 1e-6)
+
+
+def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.ndarray:
+    """(H, W, L) bool: True where light l is unobstructed from the G-buffer position (one shadow ray each).
+
+    A light below the surface's horizon (behind its geometric normal) is shadowed by the surface itself and
+    gets no ray: its bit is 0. That is the N.L > 0 test every shader applies anyway; skipping those rays
+    saves work and makes the bit independent of how a ray grazing the surface's own triangle is resolved.
+    """
+    h, w = g.depth.shape
+    n_lights = len(lights)
+    vis = np.zeros((h * w, n_lights), bool)
+    idx = np.nonzero(g.valid.reshape(-1))[0]
+    if n_lights == 0 or len(idx) == 0:
+        return vis.reshape(h, w, n_lights)
+    p = g.position.reshape(-1, 3)[idx]
+    ng = g.geo_normal.reshape(-1, 3)[idx].astype(np.float64)
+    origin = offset_ray_origin(p, ng)
+    light_pos = np.stack([lt.position for lt in lights]).astype(np.float64)
+    per_chunk = max(chunk_rays // max(len(idx), 1), 1)
+    for l0 in range(0, n_lights, per_chunk):
+        lp = light_pos[l0:l0 + per_chunk]
+        to_light = lp[None, :, :] - origin[:, None, :].astype(np.float64)  # (P, l, 3)
+        dist = np.linalg.norm(to_light, axis=-1)
+        d = to_light / np.maximum(dist, 1e-30)[..., None]
+        above = np.einsum("plc,pc->pl", d, ng) > 0
+        sel = above.reshape(-1)
+        o = np.broadcast_to(origin[:, None, :], d.shape).reshape(-1, 3)[sel]
+        occ = tracer.occluded(o, d.reshape(-1, 3)[sel].astype(np.float32), 0.0,
+                              (dist.reshape(-1)[sel] * SHADOW_TMAX_SCALE).astype(np.float32))
+        chunk_vis = np.zeros(above.size, bool)
+        chunk_vis[sel] = ~occ
+        vis[idx, l0:l0 + lp.shape[0]] = chunk_vis.reshape(above.shape)
+    return vis.reshape(h, w, n_lights)
+
+
+def shade_point_lights(g, lights, visibility, ambient=None, min_distance: float = 0.0) -> np.ndarray:
+    """Lambertian point-light shading from a visibility mask (seed 000 §3.1's shading equation).
+
+    ``ambient`` (float or RGB radiance) is added as ``ambient * rho`` where no light is visible (seed 000
+    §5.1, Fig. 9). Returns (H, W, 3) float32 radiance including the G-buffer's emission.
+    """
+    h, w = g.depth.shape
+    out = np.zeros((h, w, 3), np.float64)
+    valid = g.valid
+    p = g.position.astype(np.float64)
+    n = g.normal.astype(np.float64)
+    for li, light in enumerate(lights):
+        to_light = np.asarray(light.position, np.float64) - p
+        dist2 = np.maximum(np.einsum("hwc,hwc->hw", to_light, to_light), min_distance ** 2)
+        dist = np.sqrt(dist2)
+        cos = np.maximum(np.einsum("hwc,hwc->hw", n, to_light) / np.maximum(dist, 1e-300), 0.0)
+        lit = visibility[..., li] & valid
+        out += (lit * cos / np.maximum(dist2, 1e-300))[..., None] * np.asarray(light.intensity, np.float64)
+    out *= g.albedo.astype(np.float64) * INV_PI
+    if ambient is not None and len(lights) > 0:
+        dark = valid & ~visibility.any(axis=-1)
+        out += dark[..., None] * np.asarray(ambient, np.float64) * g.albedo
+    elif ambient is not None:
+        out += valid[..., None] * np.asarray(ambient, np.float64) * g.albedo
+    out += g.emission
+    return out.astype(np.float32)
+
+
+class AreaLights:
+    """The scene's emissive triangles, prepared for sampling proportional to power (area x luminance)."""
+
+    def __init__(self, scene, t_s: float = 0.0):
+        self.faces = scene.emissive_faces()
+        positions = scene.positions_at(t_s)
+        tri = scene.triangles(positions)[self.faces].astype(np.float64)
+        self.p0, self.e1, self.e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        cross = np.cross(self.e1, self.e2)
+        self.area = 0.5 * np.linalg.norm(cross, axis=-1)
+        ng = cross / np.maximum(2.0 * self.area, 1e-300)[:, None]
+        # Emission side follows the stored vertex normals (the mesh's intended front), whatever the winding.
+        vn = scene.normals_at(t_s)[scene.faces[self.faces]].astype(np.float64).sum(axis=1)
+        self.normal = np.where(np.einsum("ij,ij->i", ng, vn)[:, None] < 0, -ng, ng)
+        self.radiance = np.stack([scene.materials[m].emission for m in scene.face_material[self.faces]]).astype(np.float64) \
+            if len(self.faces) else np.zeros((0, 3))
+        power = self.area * self.radiance.mean(axis=-1) if len(self.faces) else np.zeros(0)
+        total = power.sum()
+        self.pmf = power / total if total > 0 else np.zeros_like(power)
+        self.cdf = np.cumsum(self.pmf)
+
+    def __len__(self) -> int:
+        return int((self.pmf > 0).sum())
+
+
+def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, seed: int = 0,
+                        min_distance: float = 0.0, chunk_pixels: int = 1 << 16) -> np.ndarray:
+    """Soft-shadowed direct light from triangle area lights, ``samples`` stratified samples per pixel.
+
+    Sample k of n picks a light with the stratified number (k + xi)/n through the power CDF and a point on it
+    with a jittered sqrt(n) x sqrt(n) grid over the unit square (warped to the triangle), which lowers the
+    variance against independent sampling without bias.
+    """
+    h, w = g.depth.shape
+    out = np.zeros((h * w, 3), np.float64)
+    idx = np.nonzero(g.valid.reshape(-1))[0]
+    if len(area_lights) == 0 or len(idx) == 0 or samples <= 0:
+        return out.reshape(h, w, 3).astype(np.float32)
+    rng = np.random.default_rng(seed)
+    side = max(int(np.ceil(np.sqrt(samples))), 1)
+    strata = np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)
+    strata = strata[np.linspace(0, len(strata) - 1, samples).round().astype(int)]
+    positions = g.position.reshape(-1, 3)
+    normals = g.normal.reshape(-1, 3)
+    geo = g.geo_normal.reshape(-1, 3)
+    for c0 in range(0, len(idx), chunk_pixels):
+        pix = idx[c0:c0 + chunk_pixels]
+        m = len(pix)
+        xi_sel = (np.arange(samples)[None, :] + rng.random((m, samples))) / samples
+        rng.permuted(xi_sel, axis=1, out=xi_sel)  # decorrelate light choice from the 2-D stratum
+        light = np.minimum(np.searchsorted(area_lights.cdf, xi_sel * area_lights.cdf[-1], side="right"),
+                           len(area_lights.cdf) - 1)
+        uv = (strata[None, :, :] + rng.random((m, samples, 2))) / side
+        su = np.sqrt(uv[..., 0])
+        b1, b2 = 1.0 - su, uv[..., 1] * su  # uniform point on the triangle
+        y = area_lights.p0[light] + b1[..., None] * area_lights.e1[light] + b2[..., None] * area_lights.e2[light]
+        ny = area_lights.normal[light]
+        x = positions[pix].astype(np.float64)[:, None, :]
+        origin = offset_ray_origin(np.broadcast_to(positions[pix][:, None, :], y.shape), np.broadcast_to(geo[pix][:, None, :], y.shape))
+        to_y = y - x
+        dist2 = np.maximum(np.einsum("psc,psc->ps", to_y, to_y), min_distance ** 2)
+        dist = np.sqrt(dist2)
+        wdir = to_y / dist[..., None]
+        cos_x = np.einsum("psc,pc->ps", wdir, normals[pix].astype(np.float64))
+        cos_y = -np.einsum("psc,psc->ps", wdir, ny)
+        active = (cos_x > 0) & (cos_y > 0)
+        pdf_area = area_lights.pmf[light] / np.maximum(area_lights.area[light], 1e-300)
+        weight = np.where(active, cos_x * cos_y / dist2 / np.maximum(pdf_area, 1e-300), 0.0)
+        sel = active.reshape(-1)
+        if sel.any():
+            o = origin.reshape(-1, 3)[sel]
+            seg = (y.reshape(-1, 3)[sel] - o.astype(np.float64))
+            seg_len = np.linalg.norm(seg, axis=-1)
+            d = (seg / np.maximum(seg_len, 1e-30)[:, None]).astype(np.float32)
+            occ = tracer.occluded(o, d, 0.0, (seg_len * SHADOW_TMAX_SCALE).astype(np.float32))
+            vis = np.zeros(m * samples, bool)
+            vis[np.nonzero(sel)[0]] = ~occ
+            weight = weight * vis.reshape(m, samples)
+        contrib = (weight[..., None] * area_lights.radiance[light]).sum(axis=1) / samples
+        out[pix] = contrib
+    out *= g.albedo.reshape(-1, 3).astype(np.float64) * INV_PI
+    return out.reshape(h, w, 3).astype(np.float32)
+
+
+def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: int = 0) -> np.ndarray:
+    """Emission + point lights (hard shadows) + area lights (soft shadows): the ``direct`` integrator's image."""
+    lights = scene.lights_at(t_s)
+    min_d = min_light_distance(scene)
+    vis = point_light_visibility(g, lights, tracer)
+    rgb = shade_point_lights(g, lights, vis, min_distance=min_d)
+    area = AreaLights(scene, t_s)
+    if len(area):
+        rgb = rgb + area_light_radiance(g, area, tracer, samples=area_samples, seed=seed, min_distance=min_d)
+    return rgb

@@ -1,0 +1,97 @@
+"""Mitsuba 3 / Dr.Jit backend.
+
+Builds a Mitsuba scene with one mesh for static geometry and one for animated objects (so an update
+re-uploads only moving vertices). Variants: ``llvm_ad_rgb`` on CPU, ``cuda_ad_rgb`` on a GPU, ``scalar_rgb``
+as a last resort (see :mod:`suite.env`). Mitsuba rays have no ``tmin``: the base class advances origins.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from suite.trace.base import Tracer, split_static_dynamic
+
+
+class MitsubaTracer(Tracer):
+    name = "mitsuba"
+
+    def __init__(self, scene, variant: str = "auto"):
+        super().__init__(scene)
+        from suite.env import mitsuba
+
+        self.mi = mi = mitsuba(variant)
+        self.variant = mi.variant()
+        import drjit as dr
+
+        self.dr = dr
+        self.static_faces, self.dynamic_faces = split_static_dynamic(scene)
+        self._parts = [f for f in (self.static_faces, self.dynamic_faces) if len(f)]
+        desc = {"type": "scene"}
+        positions = scene.positions
+        for i, faces in enumerate(self._parts):
+            desc[f"part{i}"] = self._mesh(f"part{i}", positions, faces)
+        self.mscene = mi.load_dict(desc)
+        # Shape order in the scene may differ from insertion order: map by id.
+        self._shape_faces = [self._parts[int(s.id()[4:])] for s in self.mscene.shapes()]
+        self._params = mi.traverse(self.mscene) if len(self.dynamic_faces) else None
+        self._dynamic_key = None
+        if self._params is not None:
+            dyn_index = len(self._parts) - 1
+            self._dynamic_key = f"part{dyn_index}.vertex_positions"
+        self.rebuilds = 0
+
+    def _mesh(self, name, positions, faces):
+        mi = self.mi
+        tri = positions[self.scene.faces[faces]].reshape(-1, 3)
+        mesh = mi.Mesh(name, len(tri), len(faces))
+        params = mi.traverse(mesh)
+        params["vertex_positions"] = mi.Float(np.ascontiguousarray(tri, np.float32).reshape(-1))
+        params["faces"] = mi.UInt32(np.arange(len(tri), dtype=np.uint32))
+        params.update()
+        return mesh
+
+    def describe(self) -> dict:
+        return {"backend": self.name, "variant": self.variant}
+
+    def _update(self, t_s: float) -> None:
+        positions = self.scene.positions_at(t_s)
+        tri = positions[self.scene.faces[self.dynamic_faces]].reshape(-1)
+        self._params[self._dynamic_key] = self.mi.Float(np.ascontiguousarray(tri, np.float32))
+        self._params.update()
+        self.rebuilds += 1
+
+    def _rays(self, o, d, length):
+        mi = self.mi
+        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray.maxt = mi.Float(np.minimum(length, np.float32(3.0e38)))
+        return ray
+
+    def _intersect(self, o, d, length):
+        pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
+        valid = np.array(pi.is_valid(), bool)
+        t = np.array(pi.t, np.float32)
+        local = np.array(pi.prim_index, np.int64)
+        shape_index = np.array(pi.shape_index, np.int64) if len(self._shape_faces) > 1 else np.zeros(len(o), np.int64)
+        uv = np.array(pi.prim_uv, np.float32).reshape(2, -1) if np.array(pi.prim_uv).ndim == 2 else np.array(pi.prim_uv, np.float32)
+        if uv.shape[0] != 2:
+            uv = uv.T
+        prim = np.full(len(o), -1, np.int32)
+        for s, faces in enumerate(self._shape_faces):
+            sel = valid & (shape_index == s)
+            prim[sel] = faces[local[sel]]
+        return t, prim, uv[0], uv[1]
+
+    def _occluded(self, o, d, length):
+        return np.array(self.mscene.ray_test(self._rays(o, d, length)), bool)
+
+    def raw_occluded(self, o, d, length):
+        mi = self.mi
+        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray.maxt = mi.Float(length)
+        return np.array(self.mscene.ray_test(ray), bool)
+
+    def raw_intersect(self, o, d, length):
+        mi = self.mi
+        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray.maxt = mi.Float(length)
+        pi = self.mscene.ray_intersect_preliminary(ray, coherent=False)
+        return np.array(pi.t), np.array(pi.prim_index)

@@ -1,0 +1,85 @@
+"""G-buffer: pixel-centre primary rays equal Mitsuba's camera rays; attributes and motion vectors."""
+import numpy as np
+import pytest
+
+from suite.gbuffer import camera_rays, project, render_gbuffer
+from suite.errors import UserError
+from suite.scene import load
+from suite.scene.mitsuba_io import sensor_dict
+from suite.trace import make
+
+
+def test01_camera_rays_match_mitsuba_perspective_sensor_at_pixel_centres():
+    from suite.env import mitsuba
+
+    mi = mitsuba("llvm")
+    scene = load("living_room")
+    width, height = 40, 24
+    t = 1.3
+    sensor = mi.load_dict(sensor_dict(mi, scene, t, (width, height), spp=1))
+    jj, ii = np.meshgrid(np.arange(width), np.arange(height))
+    sx, sy = ((jj + 0.5) / width).reshape(-1), ((ii + 0.5) / height).reshape(-1)
+    rays, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(sx, sy), mi.Point2f(0.5, 0.5))
+    ref_o = np.array(rays.o).reshape(3, -1).T if np.array(rays.o).shape[0] == 3 else np.array(rays.o)
+    ref_d = np.array(rays.d).reshape(3, -1).T if np.array(rays.d).shape[0] == 3 else np.array(rays.d)
+    o, d = camera_rays(scene.camera.pose_at(t), scene.camera.fov_deg, width, height)
+    # Mitsuba starts rays at the near clip plane; compare directions and the line through the origin.
+    np.testing.assert_allclose(d, ref_d, atol=2e-5)
+    np.testing.assert_allclose(np.cross(ref_o - o, d), 0.0, atol=1e-5)
+
+
+def test02_project_inverts_camera_rays():
+    scene = load("atrium")
+    pose = scene.camera.pose_at(0.7)
+    o, d = camera_rays(pose, scene.camera.fov_deg, 32, 18)
+    xy, z = project(o + 3.0 * d, pose, scene.camera.fov_deg, 32, 18)
+    jj, ii = np.meshgrid(np.arange(32) + 0.5, np.arange(18) + 0.5)
+    np.testing.assert_allclose(xy[:, 0], jj.reshape(-1), atol=1e-4)
+    np.testing.assert_allclose(xy[:, 1], ii.reshape(-1), atol=1e-4)
+    assert (z > 0).all()
+
+
+@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+def test03_gbuffer_attributes_are_consistent(backend, room_scene):
+    g = render_gbuffer(room_scene, make(backend, room_scene), 0.0)
+    assert g.valid.all()  # a closed room: every pixel sees a surface
+    p, eye = g.position.reshape(-1, 3), g.camera_position
+    np.testing.assert_allclose(np.linalg.norm(p - eye, axis=1), g.depth.reshape(-1), rtol=1e-4)
+    # Both normals are unit length and face the camera.
+    for n in (g.normal, g.geo_normal):
+        np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+        assert (np.einsum("hwc,hwc->hw", n, g.view_dir) < 0).all()
+    albedos = {tuple(a) for a in np.unique(g.albedo.reshape(-1, 3).astype(np.float64).round(3), axis=0).tolist()}
+    assert albedos == {(0.7, 0.5, 0.5), (0.3, 0.6, 0.4)}
+
+
+def test04_background_pixels_are_marked_invalid(grazing_plane_scene):
+    scene = grazing_plane_scene
+    scene.camera.keys[0].target = np.array([0.0, 3.0, -10.0])  # look at the horizon: sky above
+    g = render_gbuffer(scene, make("embree", scene), 0.0)
+    assert 0 < g.valid.mean() < 1
+    assert np.isinf(g.depth[~g.valid]).all() and (g.prim[~g.valid] == -1).all()
+    assert (g.position[~g.valid] == 0).all()
+
+
+def test05_motion_vectors_point_to_the_same_surface_in_the_previous_frame():
+    scene = load("living_room")
+    tracer = make("embree", scene)
+    t_prev, t = 1.0, 1.0 + 1 / 30
+    res = (80, 45)
+    g = render_gbuffer(scene, tracer, t, res, prev_t_s=t_prev)
+    g_prev = render_gbuffer(scene, tracer, t_prev, res)
+    jj, ii = np.meshgrid(np.arange(res[0]) + 0.5, np.arange(res[1]) + 0.5)
+    px = np.floor(jj + g.motion[..., 0]).astype(int)
+    py = np.floor(ii + g.motion[..., 1]).astype(int)
+    inside = (px >= 0) & (px < res[0]) & (py >= 0) & (py < res[1]) & g.valid
+    assert np.abs(g.motion).max() > 0.5  # the camera moved
+    same = g_prev.position[py[inside], px[inside]]
+    dist = np.linalg.norm(same - g.position[inside], axis=-1)
+    # Reprojected pixels land on (nearly) the same world point, except at disocclusions and edges.
+    assert np.mean(dist < 0.1) > 0.95
+
+
+def test06_bad_resolution_is_a_user_error(room_scene):
+    with pytest.raises(UserError, match="0x0"):
+        render_gbuffer(room_scene, make("embree", room_scene), 0.0, (0, 0))

@@ -1,0 +1,117 @@
+"""Tracing backends: both backends see the same scene (parity), robust origins, counters, updates."""
+import numpy as np
+import pytest
+
+from suite.errors import UserError
+from suite.gbuffer import camera_rays
+from suite.scene import list_scenes, load
+from suite.trace import make, offset_ray_origin
+
+SCENES = sorted(list_scenes())
+
+
+def random_rays(scene, n, seed):
+    rng = np.random.default_rng(seed)
+    lo, hi = scene.bounds()
+    origins = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return origins, dirs.astype(np.float32)
+
+
+@pytest.mark.parametrize("scene_name", SCENES)
+def test01_backends_agree_on_hits_primitives_and_distances(scene_name):
+    scene = load(scene_name)
+    o1, d1 = random_rays(scene, 20000, seed=1)
+    o2, d2 = camera_rays(scene.camera.pose_at(0.0), scene.camera.fov_deg, 96, 54)
+    o, d = np.concatenate([o1, o2]), np.concatenate([d1, d2])
+    he, hm = make("embree", scene).intersect(o, d), make("mitsuba-llvm", scene).intersect(o, d)
+    assert np.mean(he.hit == hm.hit) >= 0.999
+    assert np.mean(he.prim == hm.prim) >= 0.999
+    same = he.hit & hm.hit & (he.prim == hm.prim)
+    rel = np.abs(he.t[same] - hm.t[same]) / np.maximum(np.abs(he.t[same]), 1e-6)
+    assert np.mean(rel <= 1e-4) >= 0.999
+
+
+@pytest.mark.parametrize("scene_name", ["living_room", "arena"])
+def test02_backends_agree_on_occlusion_with_finite_tmax(scene_name):
+    scene = load(scene_name)
+    o, d = random_rays(scene, 20000, seed=2)
+    tmax = np.random.default_rng(3).uniform(0.1, 5.0, len(o)).astype(np.float32)
+    oe = make("embree", scene).occluded(o, d, 0.0, tmax)
+    om = make("mitsuba-llvm", scene).occluded(o, d, 0.0, tmax)
+    assert 0.05 < oe.mean() < 0.95  # a meaningful mix of blocked and free rays
+    assert np.mean(oe == om) >= 0.999
+
+
+@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+def test03_tmin_skips_hits_before_it_and_reports_t_from_the_original_origin(backend, room_scene):
+    tracer = make(backend, room_scene)
+    o = np.array([[0, 1, 0]], np.float32)
+    d = np.array([[1, 0, 0]], np.float32)
+    # Block B spans x in [0.5, 1.8] but only up to y = 0.6; at y = 1 the ray reaches the wall at x = 3.
+    assert tracer.intersect(o, d).t[0] == pytest.approx(3.0, rel=1e-5)
+    o_low = np.array([[0, 0.3, 1.0]], np.float32)
+    assert tracer.intersect(o_low, d).t[0] == pytest.approx(0.5, rel=1e-5)
+    assert tracer.intersect(o_low, d, tmin=1.0).t[0] == pytest.approx(1.8, rel=1e-5)  # far side of block B
+    assert tracer.intersect(o_low, d, tmin=2.0).t[0] == pytest.approx(3.0, rel=1e-5)
+    assert tracer.occluded(o_low, d, 0.0, 0.4)[0] == np.False_
+    assert tracer.occluded(o_low, d, 0.0, 0.6)[0] == np.True_
+
+
+@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+def test04_counters_count_every_ray(backend, room_scene):
+    tracer = make(backend, room_scene)
+    o = np.zeros((10, 3), np.float32)
+    d = np.tile(np.float32([0, 1, 0]), (10, 1))
+    tracer.intersect(o, d)
+    tracer.occluded(o, d, 0, 1.0)
+    tracer.occluded(o[:3], d[:3], 0, 1.0)
+    assert tracer.counters == {"rays_intersect": 10, "rays_occluded": 13}
+
+
+def test05_robust_offset_scales_with_coordinate_magnitude():
+    from suite.trace.robust import OFFSET_ULPS
+
+    n = np.array([[0, 1, 0]], np.float32)
+    steps = []
+    for magnitude in (1.0, 100.0, 1e4):
+        p = np.array([[magnitude, magnitude, magnitude]], np.float32)
+        step = float(offset_ray_origin(p, n)[0, 1]) - float(p[0, 1])
+        ulp_step = OFFSET_ULPS * float(np.spacing(np.float32(magnitude)))
+        assert step >= ulp_step * 0.99
+        if magnitude >= 100:
+            assert step == pytest.approx(ulp_step, rel=0.01)
+        assert offset_ray_origin(p, -n)[0, 1] < p[0, 1]  # the other side moves the other way
+        steps.append(step)
+    assert steps[2] / steps[0] > 1e3  # not a fixed epsilon
+    # Near the origin, where ULPs vanish, an absolute floor keeps the point off the surface.
+    assert offset_ray_origin(np.zeros((1, 3), np.float32), n)[0, 1] > 1e-7
+
+
+@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+def test06_update_moves_animated_objects(backend):
+    scene = load("arena")
+    anim = scene.object_animations[0]
+    faces = np.nonzero(scene.face_object == anim.object_id)[0]
+    tracer = make(backend, scene)
+
+    def platform_probe(t):
+        """A downward ray from 0.2 m above the centre of the platform's top at time t."""
+        tri = scene.triangles(scene.positions_at(t))[faces].reshape(-1, 3)
+        top = np.array([tri[:, 0].mean(), tri[:, 1].max() + 0.2, tri[:, 2].mean()], np.float32)
+        return top[None], np.float32([[0, -1, 0]])
+
+    t_rest, t_moved = float(anim.times_s[0]), float(anim.times_s[1])
+    probe_rest, probe_moved = platform_probe(t_rest), platform_probe(t_moved)
+    for t, hits_at_rest in ((t_rest, True), (t_moved, False), (t_rest, True)):
+        tracer.update(t)
+        hit_rest = scene.face_object[tracer.intersect(*probe_rest).prim[0]] == anim.object_id
+        hit_moved = scene.face_object[tracer.intersect(*probe_moved).prim[0]] == anim.object_id
+        assert hit_rest == hits_at_rest
+        assert hit_moved == (not hits_at_rest)
+
+
+def test07_unknown_backend_is_a_user_error(room_scene):
+    with pytest.raises(UserError, match="unknown backend 'optix'"):
+        make("optix", room_scene)
