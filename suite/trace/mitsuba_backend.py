@@ -67,17 +67,27 @@ class MitsubaTracer(Tracer):
 
     def _intersect(self, o, d, length):
         pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
-        valid = np.array(pi.is_valid(), bool)
+        fields = [pi.t, pi.prim_index, pi.prim_uv]
+        multi = len(self._shape_faces) > 1
+        if multi:
+            fields.append(pi.shape_index)
+        # One kernel launch for all fields: converting them one by one would re-trace the rays each time.
+        self.dr.eval(*fields)
         t = np.array(pi.t, np.float32)
+        valid = np.isfinite(t)
         local = np.array(pi.prim_index, np.int64)
-        shape_index = np.array(pi.shape_index, np.int64) if len(self._shape_faces) > 1 else np.zeros(len(o), np.int64)
-        uv = np.array(pi.prim_uv, np.float32).reshape(2, -1) if np.array(pi.prim_uv).ndim == 2 else np.array(pi.prim_uv, np.float32)
+        uv = np.array(pi.prim_uv, np.float32)
         if uv.shape[0] != 2:
             uv = uv.T
-        prim = np.full(len(o), -1, np.int32)
-        for s, faces in enumerate(self._shape_faces):
-            sel = valid & (shape_index == s)
-            prim[sel] = faces[local[sel]]
+        if multi:
+            shape_index = np.array(pi.shape_index, np.int64)
+            prim = np.full(len(o), -1, np.int32)
+            for s, faces in enumerate(self._shape_faces):
+                sel = valid & (shape_index == s)
+                prim[sel] = faces[local[sel]]
+        else:
+            faces = self._shape_faces[0]
+            prim = np.where(valid, faces[np.where(valid, local, 0)], -1).astype(np.int32)
         return t, prim, uv[0], uv[1]
 
     def _occluded(self, o, d, length):
@@ -94,4 +104,5 @@ class MitsubaTracer(Tracer):
         ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
         ray.maxt = mi.Float(length)
         pi = self.mscene.ray_intersect_preliminary(ray, coherent=False)
-        return np.array(pi.t), np.array(pi.prim_index)
+        self.dr.eval(pi.t, pi.prim_index, pi.prim_uv)
+        return np.array(pi.t), np.array(pi.prim_index), np.array(pi.prim_uv)
