@@ -16,7 +16,8 @@ from suite.errors import UserError
 
 @dataclass
 class GBuffer:
-    position: np.ndarray  # (H, W, 3) float32 world position (0 for background)
+    position: np.ndarray  # (H, W, 3) float64 world position (0 for background); float64 keeps far-from-origin
+    #                      scenes as precise as scenes at the origin for secondary rays
     normal: np.ndarray  # (H, W, 3) shading normal, on the camera's side of the surface
     geo_normal: np.ndarray  # (H, W, 3) geometric normal, on the camera's side
     albedo: np.ndarray  # (H, W, 3) diffuse reflectance
@@ -139,7 +140,7 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     hits = tracer.intersect(origins, dirs)
     n = width * height
     valid = hits.prim >= 0
-    position = np.zeros((n, 3), np.float32)
+    position = np.zeros((n, 3), np.float64)
     normal = np.zeros((n, 3), np.float32)
     geo = np.zeros((n, 3), np.float32)
     albedo = np.zeros((n, 3), np.float32)

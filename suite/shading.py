@@ -43,7 +43,7 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
         return vis.reshape(h, w, n_lights)
     p = g.position.reshape(-1, 3)[idx]
     ng = g.geo_normal.reshape(-1, 3)[idx].astype(np.float64)
-    origin = offset_ray_origin(p, ng)
+    origin = offset_ray_origin(p, ng, getattr(tracer, "shift", None))
     light_pos = np.stack([lt.position for lt in lights]).astype(np.float64)
     per_chunk = max(chunk_rays // max(len(idx), 1), 1)
     for l0 in range(0, n_lights, per_chunk):
@@ -148,7 +148,8 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
         y = area_lights.p0[light] + b1[..., None] * area_lights.e1[light] + b2[..., None] * area_lights.e2[light]
         ny = area_lights.normal[light]
         x = positions[pix].astype(np.float64)[:, None, :]
-        origin = offset_ray_origin(np.broadcast_to(positions[pix][:, None, :], y.shape), np.broadcast_to(geo[pix][:, None, :], y.shape))
+        origin = offset_ray_origin(np.broadcast_to(positions[pix][:, None, :], y.shape), np.broadcast_to(geo[pix][:, None, :], y.shape),
+                                   getattr(tracer, "shift", None))
         to_y = y - x
         dist2 = np.maximum(np.einsum("psc,psc->ps", to_y, to_y), min_distance ** 2)
         dist = np.sqrt(dist2)

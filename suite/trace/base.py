@@ -10,6 +10,11 @@ Every backend answers two queries on numpy arrays of float32 rays:
 (embreex fixes ``tnear`` at 0), so the origin is advanced by ``tmin`` along the ray and ``t`` is shifted back.
 Robust shadow-ray origins are the caller's job (see :func:`suite.trace.robust.offset_ray_origin`).
 
+Backends trace in a frame centred on the scene's bounding box: geometry and ray origins are shifted by the
+box centre in float64 before they become float32. A scene far from the origin then gets the precision of a
+scene at the origin inside the backend (hit distances, watertight edge tests); only its input coordinates
+carry their own rounding.
+
 Animated scenes: ``update(t_s)`` moves the scene's rigidly animated objects; backends keep static and moving
 geometry apart so that an update rebuilds only what moved.
 """
@@ -34,17 +39,21 @@ class Hits:
         return self.prim >= 0
 
 
-def as_rays(origins, dirs, tmin, tmax):
-    """Validates ray arrays and applies ``tmin`` by advancing origins. Returns (o, d, tmin, length)."""
-    o = np.ascontiguousarray(origins, np.float32).reshape(-1, 3)
+def as_rays(origins, dirs, tmin, tmax, shift=None):
+    """Validates ray arrays, moves origins into the tracing frame (minus ``shift``) and applies ``tmin`` by
+    advancing them. Returns (o, d, tmin, length) as float32."""
+    o = np.asarray(origins).reshape(-1, 3)
     d = np.ascontiguousarray(dirs, np.float32).reshape(-1, 3)
     if o.shape != d.shape:
         raise UserError(f"ray origins {o.shape} and directions {d.shape} differ in shape")
     n = len(o)
     tmin_a = np.broadcast_to(np.asarray(tmin, np.float32), (n,))
     tmax_a = np.broadcast_to(np.asarray(tmax, np.float32), (n,))
+    if shift is not None:
+        o = o.astype(np.float64) - shift
     if np.any(tmin_a > 0):
-        o = np.ascontiguousarray(o + d * tmin_a[:, None], np.float32)
+        o = o.astype(np.float64) + d * tmin_a[:, None].astype(np.float64)
+    o = np.ascontiguousarray(o, np.float32)
     length = np.ascontiguousarray(np.maximum(tmax_a - tmin_a, 0.0), np.float32)
     return o, d, tmin_a, length
 
@@ -58,10 +67,16 @@ class Tracer:
         self.scene = scene
         self.counters = {"rays_intersect": 0, "rays_occluded": 0}
         self._time_s = 0.0
+        lo, hi = scene.bounds()
+        self.shift = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
+
+    def local_positions(self, positions: np.ndarray) -> np.ndarray:
+        """Vertex positions in the tracing frame (float32)."""
+        return (positions.astype(np.float64) - self.shift).astype(np.float32)
 
     # subclasses implement _intersect(o, d, length) -> (t, prim, u, v) and _occluded(o, d, length) -> bool
     def intersect(self, origins, dirs, tmin=0.0, tmax=np.inf) -> Hits:
-        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax)
+        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift)
         self.counters["rays_intersect"] += len(o)
         if len(o) == 0:
             z = np.zeros(0, np.float32)
@@ -73,7 +88,7 @@ class Tracer:
                     np.where(miss, 0, v).astype(np.float32))
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
-        o, d, _, length = as_rays(origins, dirs, tmin, tmax)
+        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift)
         self.counters["rays_occluded"] += len(o)
         if len(o) == 0:
             return np.zeros(0, bool)

@@ -20,7 +20,7 @@ def shadow_rays(scene, resolution=(320, 180), t_s: float = 0.5):
     """Realistic shadow rays: from every visible pixel of the camera's view to every point light."""
     tracer = make("embree", scene)
     g = render_gbuffer(scene, tracer, t_s, resolution)
-    p = offset_ray_origin(g.position[g.valid], g.geo_normal[g.valid])
+    p = offset_ray_origin(g.position[g.valid], g.geo_normal[g.valid], tracer.shift)
     lights = np.stack([lt.position for lt in scene.lights_at(t_s)]) if scene.point_lights else np.zeros((1, 3))
     to_light = lights[None, :, :] - p[:, None, :].astype(np.float64)
     dist = np.linalg.norm(to_light, axis=-1)
@@ -45,7 +45,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     tracer = make(backend, scene)
     if not hasattr(tracer, "raw_occluded"):
         raise NotImplementedError(f"backend {backend} has no raw entry point")
-    ro, rd, _, rlen = as_rays(o, d, 0.0, tmax)
+    ro, rd, _, rlen = as_rays(o, d, 0.0, tmax, tracer.shift)
     # Warm up (JIT compilation for Dr.Jit, page faults for both), then interleave suite and raw.
     tracer.occluded(o, d, 0.0, tmax), tracer.raw_occluded(ro, rd, rlen)
     tracer.intersect(o, d, 0.0, tmax), tracer.raw_intersect(ro, rd, rlen)

@@ -51,13 +51,13 @@ class EmbreeTracer(Tracer):
     def __init__(self, scene):
         super().__init__(scene)
         self.static_faces, self.dynamic_faces = split_static_dynamic(scene)
-        tri = scene.triangles()
+        tri = scene.triangles(self.local_positions(scene.positions))
         self.static = _Part(tri[self.static_faces], self.static_faces)
         self.dynamic = _Part(tri[self.dynamic_faces], self.dynamic_faces) if len(self.dynamic_faces) else None
         self.rebuilds = 0
 
     def _update(self, t_s: float) -> None:
-        positions = self.scene.positions_at(t_s)
+        positions = self.local_positions(self.scene.positions_at(t_s))
         self.dynamic = _Part(self.scene.triangles(positions)[self.dynamic_faces], self.dynamic_faces)
         self.rebuilds += 1
 

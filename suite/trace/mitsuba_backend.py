@@ -26,7 +26,7 @@ class MitsubaTracer(Tracer):
         self.static_faces, self.dynamic_faces = split_static_dynamic(scene)
         self._parts = [f for f in (self.static_faces, self.dynamic_faces) if len(f)]
         desc = {"type": "scene"}
-        positions = scene.positions
+        positions = self.local_positions(scene.positions)
         for i, faces in enumerate(self._parts):
             desc[f"part{i}"] = self._mesh(f"part{i}", positions, faces)
         self.mscene = mi.load_dict(desc)
@@ -53,7 +53,7 @@ class MitsubaTracer(Tracer):
         return {"backend": self.name, "variant": self.variant}
 
     def _update(self, t_s: float) -> None:
-        positions = self.scene.positions_at(t_s)
+        positions = self.local_positions(self.scene.positions_at(t_s))
         tri = positions[self.scene.faces[self.dynamic_faces]].reshape(-1)
         self._params[self._dynamic_key] = self.mi.Float(np.ascontiguousarray(tri, np.float32))
         self._params.update()

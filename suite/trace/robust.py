@@ -1,41 +1,41 @@
 """Robust secondary-ray origins.
 
-Shadow rays that start exactly on a surface re-hit it because of float rounding ("shadow acne"). A fixed
-epsilon fails both near the origin (too large: light leaks through corners) and far from it (too small:
-acne). In the spirit of Wächter and Binder, "A Fast and Robust Method for Avoiding Self-Intersection"
-(Ray Tracing Gems, ch. 6), the offset is measured in float32 ULPs of the point's coordinates, so it scales
-with their magnitude, and an absolute floor takes over near the origin where ULPs vanish.
+Shadow rays that start exactly on a surface re-hit it because of rounding ("shadow acne"). A fixed epsilon
+fails both near the origin (too large: light leaks through corners) and far from it (too small: acne). In the
+spirit of Wächter and Binder, "A Fast and Robust Method for Avoiding Self-Intersection" (Ray Tracing Gems,
+ch. 6), the offset is a number of float32 ULPs of the point's coordinates, so it scales with their magnitude,
+and an absolute floor takes over near the origin where ULPs vanish.
 
-Difference from the chapter: it moves each coordinate by ``int(256 n_i)`` ULPs, because its hit points come
-from ``o + t d`` with a large error. Our G-buffer points are barycentric interpolations of the float32
-vertices computed in float64, within about one ULP of the triangle's plane, so a much smaller offset is
-safe; 256 ULPs is 0.25 m at 1e4 units and visibly shifts contact shadows. We move the point by
-``OFFSET_ULPS`` ULPs of its largest coordinate along the full normal (no per-component truncation).
+Differences from the chapter, because our inputs are more precise than its ``o + t d`` hit points:
 
-Measured on the embedded scenes at the origin and moved 1e4 away, on both backends (shadow rays into the
-upper hemisphere, occluded within 1 mm): 1 ULP leaves 0.7-2.4 % acne at 1e4; 2 ULPs and 8 ULPs give the
-same residual (< 0.1 %, genuine contact geometry), while each extra ULP at 1e4 widens contact shadows of thin
-features (2 ULPs = 2 mm there). tests/core/test_hard_cases.py guards both sides.
+* G-buffer positions are float64 intersections of the primary ray with the hit triangle's plane, so they lie
+  on the float32 triangle up to float64 rounding.
+* Tracers work in a frame centred on the scene (``Tracer.shift``); the float64 origin is rounded to float32
+  only there, relative to that frame. The ULPs that matter are those of the coordinates *in that frame*.
+* So a small offset suffices: ``OFFSET_ULPS`` ULPs of the largest tracing-frame coordinate, along the full
+  normal. The chapter's 256 ULPs per coordinate would be 0.25 m at 1e4 units and visibly shift contact
+  shadows.
 """
 from __future__ import annotations
 
 import numpy as np
 
-# Offset in ULPs of the largest coordinate: twice the rounding error of interpolated float32 hit points.
-OFFSET_ULPS = 2.0
-# Floor near the origin (Ray Tracing Gems ch. 6, listing 6-1: float_scale = 1/65536, origin = 1/32).
+# Offset in ULPs of the largest coordinate in the tracing frame: covers the float32 rounding of the origin
+# (<= 0.87 ULP along any normal) plus the backends' intersection error, with margin.
+OFFSET_ULPS = 4.0
+# Floor near the origin: 1/65536 of the chapter's "origin" scale (Ray Tracing Gems ch. 6, listing 6-1).
 FLOAT_SCALE = 1.0 / 65536.0 / 32.0
 
 
-def offset_ray_origin(p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Moves points ``p`` along unit normals ``n`` (the side to leave from). (..., 3) float32."""
-    p32 = np.asarray(p, np.float32)
+def offset_ray_origin(p: np.ndarray, n: np.ndarray, frame_shift=None) -> np.ndarray:
+    """Moves points ``p`` along unit normals ``n`` (the side to leave from). Returns float64 (..., 3).
+
+    ``frame_shift`` is the tracer's frame origin (``Tracer.shift``); the offset is sized for the coordinates
+    relative to it, where the tracer rounds the origin to float32.
+    """
+    p64 = np.asarray(p, np.float64)
     n64 = np.asarray(n, np.float64)
-    magnitude = np.abs(p32).max(axis=-1, keepdims=True)
+    local = p64 - np.asarray(frame_shift, np.float64) if frame_shift is not None else p64
+    magnitude = np.abs(local).max(axis=-1, keepdims=True).astype(np.float32)
     step = np.maximum(OFFSET_ULPS * np.spacing(magnitude).astype(np.float64), FLOAT_SCALE)
-    out = (p32.astype(np.float64) + step * n64).astype(np.float32)
-    # Rounding back to float32 must not undo the move: nudge coordinates that did not change.
-    stuck = (out == p32) & (n64 != 0)
-    if stuck.any():
-        out = np.where(stuck, np.nextafter(p32, np.where(n64 > 0, np.inf, -np.inf).astype(np.float32)), out)
-    return out.astype(np.float32)
+    return p64 + step * n64

@@ -110,7 +110,7 @@ def test06_offset_origins_do_not_self_intersect_even_at_grazing_angles(backend, 
         old = robust.OFFSET_ULPS
         robust.OFFSET_ULPS = ulps
         try:
-            return tracer.occluded(robust.offset_ray_origin(p, n), d, 0.0, np.float32(1e-3)).mean()
+            return tracer.occluded(robust.offset_ray_origin(p, n, tracer.shift), d, 0.0, np.float32(1e-3)).mean()
         finally:
             robust.OFFSET_ULPS = old
 
