@@ -27,6 +27,10 @@ import numpy as np
 from suite.errors import UserError
 
 
+# The largest ray length handed to a backend (Embree's float32 "far" must stay finite).
+MAX_RAY_LENGTH = np.float32(1e37)
+
+
 @dataclass
 class Hits:
     t: np.ndarray  # (N,) float32, inf on miss
@@ -39,29 +43,48 @@ class Hits:
         return self.prim >= 0
 
 
-def as_rays(origins, dirs, tmin, tmax, shift=None):
+def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False):
     """Validates ray arrays, moves origins into the tracing frame (minus ``shift``) and applies ``tmin`` by
-    advancing them. Returns (o, d, tmin, length) as float32."""
-    o = np.asarray(origins).reshape(-1, 3)
+    advancing them. Returns (o, d, tmin, length) as float32; ``o`` is (3, N) with ``soa`` (the layout Dr.Jit
+    takes without a copy), else (N, 3).
+
+    The subtraction runs in the origins' own precision (float64 G-buffer points stay exact until they are
+    small numbers in the tracing frame) and writes float32 directly, without temporaries: it is on the hot
+    path of every query.
+    """
+    o_in = np.asarray(origins)
+    o_in = o_in.reshape(-1, 3)
     d = np.ascontiguousarray(dirs, np.float32).reshape(-1, 3)
-    if o.shape != d.shape:
-        raise UserError(f"ray origins {o.shape} and directions {d.shape} differ in shape")
-    n = len(o)
-    tmin_a = np.broadcast_to(np.asarray(tmin, np.float32), (n,))
-    tmax_a = np.broadcast_to(np.asarray(tmax, np.float32), (n,))
-    if shift is not None:
-        o = o.astype(np.float64) - shift
-    if np.any(tmin_a > 0):
-        o = o.astype(np.float64) + d * tmin_a[:, None].astype(np.float64)
-    o = np.ascontiguousarray(o, np.float32)
-    length = np.ascontiguousarray(np.maximum(tmax_a - tmin_a, 0.0), np.float32)
-    return o, d, tmin_a, length
+    if o_in.shape != d.shape:
+        raise UserError(f"ray origins {o_in.shape} and directions {d.shape} differ in shape")
+    n = len(o_in)
+    o = np.empty((3, n), np.float32) if soa else np.empty((n, 3), np.float32)
+    # Column by column: numpy's broadcast over a length-3 inner axis is several times slower.
+    for c in range(3):
+        np.subtract(o_in[:, c], shift[c] if shift is not None else 0.0, out=o[c] if soa else o[:, c], casting="unsafe")
+    scalar_tmin = np.ndim(tmin) == 0
+    tmin_a = np.full(n, np.float32(tmin), np.float32) if scalar_tmin else np.asarray(tmin, np.float32).reshape(n)
+    if not scalar_tmin or tmin > 0:
+        if soa:
+            o += d.T * tmin_a[None, :]
+        else:
+            o += d * tmin_a[:, None]
+    # Lengths are clipped to [0, MAX_RAY_LENGTH] in one pass: both backends take a finite float32 far value.
+    if np.ndim(tmax) == 0:
+        length = np.full(n, np.float32(tmax), np.float32)
+    else:
+        length = np.array(tmax, np.float32).reshape(n)
+    if not scalar_tmin or tmin > 0:
+        length -= tmin_a
+    np.clip(length, 0.0, MAX_RAY_LENGTH, out=length)
+    return o, d, tmin_a, np.ascontiguousarray(length, np.float32)
 
 
 class Tracer:
     """Base class: counters and the shared ray-argument handling."""
 
     name = "base"
+    soa_origins = False  # backends that take (3, N) origins without a copy set this
 
     def __init__(self, scene):
         self.scene = scene
@@ -76,21 +99,24 @@ class Tracer:
 
     # subclasses implement _intersect(o, d, length) -> (t, prim, u, v) and _occluded(o, d, length) -> bool
     def intersect(self, origins, dirs, tmin=0.0, tmax=np.inf) -> Hits:
-        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift)
-        self.counters["rays_intersect"] += len(o)
-        if len(o) == 0:
+        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins)
+        self.counters["rays_intersect"] += len(d)
+        if len(d) == 0:
             z = np.zeros(0, np.float32)
             return Hits(z, np.zeros(0, np.int32), z, z)
         t, prim, u, v = self._intersect(o, d, length)
+        t, u, v = (_writable(x) for x in (t, u, v))
+        prim = np.asarray(prim, np.int32)
         miss = prim < 0
-        t = np.where(miss, np.float32(np.inf), t + tmin_a).astype(np.float32)
-        return Hits(t, prim.astype(np.int32), np.where(miss, 0, u).astype(np.float32),
-                    np.where(miss, 0, v).astype(np.float32))
+        if np.ndim(tmin) != 0 or tmin > 0:
+            t += tmin_a
+        t[miss], u[miss], v[miss] = np.inf, 0.0, 0.0
+        return Hits(t, prim, u, v)
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
-        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift)
-        self.counters["rays_occluded"] += len(o)
-        if len(o) == 0:
+        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins)
+        self.counters["rays_occluded"] += len(d)
+        if len(d) == 0:
             return np.zeros(0, bool)
         return self._occluded(o, d, length)
 
@@ -111,6 +137,12 @@ class Tracer:
 
     def _update(self, t_s: float) -> None:
         raise NotImplementedError
+
+
+def _writable(x) -> np.ndarray:
+    """float32 array that may be modified in place (copies only when the backend's buffer is read-only)."""
+    a = np.asarray(x, np.float32)
+    return a if a.flags.writeable and a.flags.owndata else a.copy()
 
 
 def split_static_dynamic(scene):

@@ -45,7 +45,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     tracer = make(backend, scene)
     if not hasattr(tracer, "raw_occluded"):
         raise NotImplementedError(f"backend {backend} has no raw entry point")
-    ro, rd, _, rlen = as_rays(o, d, 0.0, tmax, tracer.shift)
+    ro, rd, _, rlen = as_rays(o, d, 0.0, tmax, tracer.shift)  # raw backends take (N, 3)
     # Warm up (JIT compilation for Dr.Jit, page faults for both), then interleave suite and raw.
     tracer.occluded(o, d, 0.0, tmax), tracer.raw_occluded(ro, rd, rlen)
     tracer.intersect(o, d, 0.0, tmax), tracer.raw_intersect(ro, rd, rlen)

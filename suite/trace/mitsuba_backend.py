@@ -13,6 +13,7 @@ from suite.trace.base import Tracer, split_static_dynamic
 
 class MitsubaTracer(Tracer):
     name = "mitsuba"
+    soa_origins = True  # Dr.Jit wraps contiguous rows without a copy; strided columns cost a copy each
 
     def __init__(self, scene, variant: str = "auto"):
         super().__init__(scene)
@@ -32,6 +33,9 @@ class MitsubaTracer(Tracer):
         self.mscene = mi.load_dict(desc)
         # Shape order in the scene may differ from insertion order: map by id.
         self._shape_faces = [self._parts[int(s.id()[4:])] for s in self.mscene.shapes()]
+        # A static scene's only mesh holds the faces in order: primitive index = face index.
+        self._identity_prims = len(self._shape_faces) == 1 and np.array_equal(self._shape_faces[0],
+                                                                             np.arange(scene.num_faces))
         self._params = mi.traverse(self.mscene) if len(self.dynamic_faces) else None
         self._dynamic_key = None
         if self._params is not None:
@@ -61,11 +65,12 @@ class MitsubaTracer(Tracer):
 
     def _rays(self, o, d, length):
         mi = self.mi
-        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-        ray.maxt = mi.Float(np.minimum(length, np.float32(3.0e38)))
+        ray = mi.Ray3f(mi.Point3f(o[0], o[1], o[2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray.maxt = mi.Float(length)
         return ray
 
     def _intersect(self, o, d, length):
+        n = len(d)
         pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
         fields = [pi.t, pi.prim_index, pi.prim_uv]
         multi = len(self._shape_faces) > 1
@@ -75,16 +80,19 @@ class MitsubaTracer(Tracer):
         self.dr.eval(*fields)
         t = np.array(pi.t, np.float32)
         valid = np.isfinite(t)
-        local = np.array(pi.prim_index, np.int64)
+        local = np.array(pi.prim_index)
         uv = np.array(pi.prim_uv, np.float32)
         if uv.shape[0] != 2:
             uv = uv.T
         if multi:
             shape_index = np.array(pi.shape_index, np.int64)
-            prim = np.full(len(o), -1, np.int32)
+            prim = np.full(n, -1, np.int32)
             for s, faces in enumerate(self._shape_faces):
                 sel = valid & (shape_index == s)
-                prim[sel] = faces[local[sel]]
+                prim[sel] = faces[local[sel].astype(np.int64)]
+        elif self._identity_prims:
+            prim = local.astype(np.int32)
+            prim[~valid] = -1
         else:
             faces = self._shape_faces[0]
             prim = np.where(valid, faces[np.where(valid, local, 0)], -1).astype(np.int32)

@@ -1,0 +1,378 @@
+"""``splitbench`` command line (also ``python -m suite``). The surface is fixed by ../shared/design.md.
+
+Errors a user can cause are one line on stderr (``splitbench: error: …``) with exit code 2, never a traceback.
+``--json`` prints machine-readable results on stdout; progress bars go to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from suite.errors import UserError
+
+PROG = "splitbench"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors and exit code 2 (argparse's own code, without the usage block)."""
+
+    def error(self, message):
+        raise UserError(message)
+
+
+def _check_writable_dir(path, what: str = "--out") -> Path:
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise UserError(f"cannot write to {what} '{path}' ({exc.strerror or exc})") from None
+    return path
+
+
+def _print_json(obj) -> None:
+    from suite.results import _jsonable
+
+    print(json.dumps(_jsonable(obj), indent=2, sort_keys=True))
+
+
+def _parse_sets(items) -> dict:
+    from suite.registry import parse_set_value
+
+    values = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UserError(f"malformed --set '{item}' (expected key=value)")
+        values[key.strip()] = parse_set_value(value.strip())
+    return values
+
+
+# ---------------------------------------------------------------------------------------------------- list
+
+def cmd_list(args) -> int:
+    from suite import registry, runner
+
+    methods = {}
+    for name, spec in registry.discover().items():
+        entry = {"description": spec.description, "params": spec.defaults, "doc": spec.docs,
+                 "variants": spec.variants, "presets": sorted(spec.config.get("presets", {})), "path": str(spec.path)}
+        try:
+            entry["mode"] = spec.load().mode
+        except Exception as exc:  # noqa: BLE001 - a broken method must not hide the others
+            entry["mode"] = None
+            entry["error"] = f"{type(exc).__name__}: {exc}"
+        methods[name] = entry
+    info = {"methods": methods, "scenes": _safe(_scenes), "backends": _safe(_backends),
+            "net_profiles": _safe(runner.net_profiles)}
+    if args.json:
+        _print_json(info)
+        return 0
+    print("methods:")
+    for name, m in methods.items():
+        print(f"  {name:<20} {m.get('mode') or '?':<6} {m['description']}" + (f"  [{m['error']}]" if 'error' in m else ""))
+    for title, key in (("scenes", "scenes"), ("backends", "backends"), ("net profiles", "net_profiles")):
+        print(f"{title}:")
+        for name, desc in info[key].items():
+            print(f"  {name:<20} {desc}")
+    return 0
+
+
+def _scenes():
+    from suite.scene import list_scenes
+
+    return list_scenes()
+
+
+def _backends():
+    from suite.trace import list_backends
+
+    return list_backends()
+
+
+def _safe(fn) -> dict:
+    try:
+        return dict(fn())
+    except ImportError as exc:
+        return {"(unavailable)": str(exc)}
+
+
+# ----------------------------------------------------------------------------------------------------- run
+
+def cmd_run(args) -> int:
+    from suite import runner
+
+    options = {}
+    if args.reference_spp is not None:
+        options["reference_spp"] = args.reference_spp
+    if args.clock is not None:
+        options["clock"] = args.clock
+    cfg = runner.make_config(args.method, scene=args.scene, backend=args.backend, resolution=args.resolution,
+                             frames=args.frames, net=args.net, protocol=args.protocol,
+                             set_values=_parse_sets(args.set), seed=args.seed, **options)
+    out_dir = _check_writable_dir(args.out)
+    out = runner.execute(cfg, out_dir)
+    if args.json:
+        _print_json(out)
+    else:
+        print(format_summary(out))
+    return 0
+
+
+def _stat(summary, col, key="mean"):
+    value = summary.get("stats", {}).get(col, {}).get(key)
+    return float("nan") if value is None else value
+
+
+def format_summary(out: dict) -> str:
+    s = out["summary"]
+    w, h = s["resolution"]
+    lines = [f"results: {out['run_dir']}" + ("  (already complete: skipped)" if out["skipped"] else ""),
+             f"{s['method']} [{s['variant']}, {s['mode']}]  scene {s['scene']}  {w}x{h}  {s['frames']} frames  "
+             f"net {s['net']}/{s['protocol']}",
+             f"  frame ms     mean {_stat(s, 'frame_ms'):8.2f}   p50 {_stat(s, 'frame_ms', 'p50'):8.2f}   "
+             f"p95 {_stat(s, 'frame_ms', 'p95'):8.2f}   ({s['fps']:.1f} fps simulated)",
+             f"  latency ms   mean {_stat(s, 'latency_ms'):8.2f}   p95 {_stat(s, 'latency_ms', 'p95'):8.2f}"
+             + (f"   staleness mean {_stat(s, 'staleness_ms'):.2f}" if s["mode"] == "async" else ""),
+             f"  bandwidth    {s['bandwidth_mbps']:.3f} Mbit/s  (down {s['bandwidth_down_mbps']:.3f}, "
+             f"up {s['bandwidth_up_mbps']:.3f}; {s['bytes_down'] + s['bytes_up']} bytes)",
+             f"  work         {s['rays']} rays   prepare {s['prepare_ms']:.1f} ms"]
+    for label, prefix in (("vs reference", ""), ("vs zero-latency", "zl_")):
+        ssim = _stat(s, f"{prefix}ssim")
+        if prefix and not s.get("zero_latency_run"):
+            lines.append(f"  {label:<16} identical (this run is its own zero-latency run)")
+        elif not math.isnan(ssim):
+            # PSNR has no finite value only when every compared frame was identical (infinite PSNR).
+            psnr = _stat(s, f"{prefix}psnr_db")
+            psnr_text = "inf" if math.isnan(psnr) else f"{psnr:.2f}"
+            lines.append(f"  {label:<16} SSIM {ssim:.4f}   DSSIM {_stat(s, f'{prefix}dssim'):.4f}   "
+                         f"PSNR {psnr_text} dB   FLIP {_stat(s, f'{prefix}flip'):.4f}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------- reference, compare
+
+def cmd_reference(args) -> int:
+    from suite import runner
+    from suite.imageio import write_exr
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".exr":
+        raise UserError(f"--out '{out}' must end in .exr")
+    if args.spp < 1:
+        raise UserError(f"--spp must be >= 1, got {args.spp}")
+    if args.frame < 0:
+        raise UserError(f"--frame must be >= 0, got {args.frame}")
+    _check_writable_dir(out.parent if str(out.parent) else ".", "--out directory")
+    scene = runner.load_scene(args.scene)
+    resolution = runner.parse_resolution(args.resolution) if args.resolution else list(scene.camera.resolution)
+    t_s = scene.camera.frame_time_s(args.frame)
+    img = runner.reference_image(scene, t_s, resolution, args.spp, args.max_depth)
+    write_exr(out, img)
+    info = {"out": str(out), "scene": args.scene, "t_s": t_s, "resolution": resolution, "spp": args.spp,
+            "max_depth": args.max_depth}
+    _print_json(info) if args.json else print(f"wrote {out} ({resolution[0]}x{resolution[1]}, {args.spp} spp, "
+                                              f"t={t_s:.4f} s)")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from suite.imageio import read_exr
+    from suite.metrics import compare
+
+    images = []
+    for path in (args.ref, args.test):
+        if not os.path.isfile(path):
+            raise UserError(f"no such image '{path}'")
+        images.append(read_exr(path))
+    metrics = compare(images[0], images[1], exposure=args.exposure)
+    if args.json:
+        _print_json(metrics)
+    else:
+        for k, v in metrics.items():
+            print(f"{k:<8} {v:.6g}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------ bench
+
+def cmd_bench(args) -> int:
+    from suite import runner
+
+    if args.what != "tracing":
+        raise UserError(f"unknown benchmark '{args.what}' (choose tracing)")
+    try:
+        from suite.trace import bench
+    except ImportError as exc:
+        raise UserError(f"the tracing benchmark is not available in this installation ({exc})") from None
+
+    if args.backend not in runner.backend_names():
+        raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
+    if not os.path.isfile(args.scene) and args.scene not in runner.scene_names():
+        raise UserError(f"unknown scene '{args.scene}'")
+    result = bench.run(runner.load_scene(args.scene), args.backend)
+    if args.json:
+        _print_json(result)
+        return 0
+    print(f"tracing benchmark: scene {result['scene']}, backend {args.backend}, {result['rays']:,} shadow rays, "
+          f"median of {result['repeats']}")
+    for query in ("occluded", "intersect"):
+        r = result[query]
+        print(f"  {query:9s}  suite {r['suite_rays_per_s']:>13,.0f} rays/s   raw {r['raw_rays_per_s']:>13,.0f} rays/s"
+              f"   ratio {r['ratio']:.3f}  (goal >= 0.90)")
+    return 0
+
+
+# -------------------------------------------------------------------------------------------------- reproduce
+
+def cmd_reproduce(args) -> int:
+    from suite import executor, presets
+
+    configs, problems = presets.configs(args.preset, methods=args.methods)
+    results_dir = _check_writable_dir(args.out)
+    report_dir = _check_writable_dir(args.report, "--report")
+    for problem in problems:
+        print(f"{PROG}: warning: {problem}", file=sys.stderr)
+    with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
+        outcomes = executor.sweep(configs, results_dir, ex, desc=f"preset {args.preset}")
+    from reports.build import build
+
+    index = build(results_dir, report_dir)
+    failed = [o for o in outcomes if o["error"]]
+    if args.json:
+        _print_json({"preset": args.preset, "results": str(results_dir), "report": str(index), "problems": problems,
+                     "runs": [{k: o[k] for k in ("run_dir", "skipped", "error")} | {"method": o["config"]["method"]}
+                              for o in outcomes]})
+    else:
+        done = sum(1 for o in outcomes if not o["error"] and not o["skipped"])
+        skipped = sum(1 for o in outcomes if o["skipped"])
+        print(f"preset {args.preset}: {done} runs done, {skipped} already complete, {len(failed)} failed")
+        for o in failed:
+            print(f"  FAILED {o['config']['method']} {o['config']['scene']} {o['config']['net']}: {o['error']}")
+        print(f"report: {index}")
+    return 1 if failed or problems else 0
+
+
+def cmd_report(args) -> int:
+    from reports.build import build
+
+    results_dir = Path(args.results)
+    if not results_dir.is_dir():
+        raise UserError(f"no results directory '{results_dir}'")
+    out = _check_writable_dir(args.out)
+    index = build(results_dir, out)
+    _print_json({"report": str(index)}) if args.json else print(f"report: {index}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------ parser
+
+def build_parser() -> argparse.ArgumentParser:
+    from suite.executor import EXECUTORS
+
+    p = _Parser(prog=PROG, description="Offline benchmark suite for split/remote rendering pipelines.")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    s = sub.add_parser("list", help="methods, scenes, backends, net profiles")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_list)
+
+    s = sub.add_parser("run", help="run one method on one scene and network")
+    s.add_argument("method")
+    s.add_argument("--scene", default="cornell", help="embedded name or path to a Mitsuba XML scene")
+    s.add_argument("--backend", default="embree")
+    s.add_argument("--resolution", default="160x90", help="WxH")
+    s.add_argument("--frames", default=3, type=_int_arg("--frames"))
+    s.add_argument("--net", default="ideal", help="netsim profile or inline spec; 'ideal' = zero-latency")
+    s.add_argument("--protocol", default="tcp", choices=("tcp", "udp"))
+    s.add_argument("--set", action="append", metavar="KEY=VALUE", help="method parameter (repeatable); "
+                   "variant=paper|<name> picks a variant")
+    s.add_argument("--seed", default=0, type=_int_arg("--seed"))
+    s.add_argument("--out", default="results", help="results root")
+    s.add_argument("--reference-spp", type=_int_arg("--reference-spp"), default=None,
+                   help="spp of the path-traced reference (0 = no reference metrics; default 32)")
+    s.add_argument("--clock", choices=("measured", "work"), default=None,
+                   help="stage durations: measured wall time (default) or the work model")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("reference", help="render a Mitsuba path-traced reference (cached)")
+    s.add_argument("--scene", required=True)
+    s.add_argument("--resolution", default=None)
+    s.add_argument("--spp", default=256, type=_int_arg("--spp"))
+    s.add_argument("--frame", default=0, type=_int_arg("--frame"))
+    s.add_argument("--max-depth", default=8, type=_int_arg("--max-depth"))
+    s.add_argument("--out", required=True)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_reference)
+
+    s = sub.add_parser("compare", help="ssim, dssim, psnr, nrmse, flip of TEST against REF")
+    s.add_argument("ref")
+    s.add_argument("test")
+    s.add_argument("--exposure", default=1.0, type=float)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_compare)
+
+    s = sub.add_parser("bench", help="benchmarks: tracing (suite vs raw backend rays/s)")
+    s.add_argument("what", choices=("tracing",))
+    s.add_argument("--scene", default="cornell")
+    s.add_argument("--backend", default="embree")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("reproduce", help="run a preset matrix, then build the report")
+    s.add_argument("--preset", default="quick", choices=("smoke", "quick", "full"))
+    s.add_argument("--methods", default=None, help="comma-separated subset of methods")
+    s.add_argument("--out", default="results", help="results root")
+    s.add_argument("--report", default="report", help="report directory")
+    s.add_argument("--executor", default="serial", choices=EXECUTORS)
+    s.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://host:port (implies dask)")
+    s.add_argument("--workers", default=2, type=_int_arg("--workers"))
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_reproduce)
+
+    s = sub.add_parser("report", help="build the HTML report from stored results")
+    s.add_argument("results", nargs="?", default="results")
+    s.add_argument("--out", default="report")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_report)
+
+    try:
+        import netsim.cli as netsim_cli
+    except ImportError:
+        netsim_cli = None
+    if netsim_cli is not None and hasattr(netsim_cli, "register"):
+        netsim_cli.register(sub)
+    return p
+
+
+def _int_arg(name: str):
+    def parse(text):
+        try:
+            return int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, got '{text}'") from None
+    return parse
+
+
+def main(argv=None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return UserError.exit_code
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,180 @@
+"""Method discovery: every folder under ``methods/`` (and under ``SPLITBENCH_METHOD_PATHS``) with a config.toml.
+
+The runner asks the registry by name; no method is named in the harness. ``method.py`` is imported from its
+file path, so a method folder need not be an installed package.
+"""
+from __future__ import annotations
+
+import importlib.util
+import inspect
+import itertools
+import os
+import sys
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from suite.errors import UserError
+from suite.method import Method
+
+METHODS_DIR = Path(__file__).resolve().parent.parent / "methods"
+PRESETS = ("smoke", "quick", "full")
+RESERVED_PARAMS = ("client_fps", "update_fps", "max_in_flight")
+
+
+@dataclass
+class MethodSpec:
+    """One discovered method folder and its parsed config.toml."""
+
+    name: str
+    path: Path
+    config: dict = field(repr=False)
+
+    @property
+    def description(self) -> str:
+        return str(self.config.get("method", {}).get("description", ""))
+
+    @property
+    def defaults(self) -> dict:
+        return dict(self.config.get("defaults", {}))
+
+    @property
+    def docs(self) -> dict:
+        return dict(self.config.get("doc", {}))
+
+    @property
+    def variants(self) -> list[str]:
+        names = ["default"]
+        if "paper" in self.config:
+            names.append("paper")
+        return names + sorted(self.config.get("variants", {}))
+
+    def variant_overrides(self, variant: str) -> dict:
+        if variant in ("default", "", None):
+            return {}
+        if variant == "paper" and "paper" in self.config:
+            return dict(self.config["paper"])
+        if variant in self.config.get("variants", {}):
+            return dict(self.config["variants"][variant])
+        raise UserError(f"method '{self.name}' has no variant '{variant}' (choose from {', '.join(self.variants)})")
+
+    def params(self, variant: str = "default", overrides: dict | None = None) -> dict:
+        """[defaults] ← variant ← overrides, with each override checked against the defaults' keys and types."""
+        params = self.defaults
+        for key, value in {**self.variant_overrides(variant), **(overrides or {})}.items():
+            params[key] = check_param(self.name, params, key, value)
+        return params
+
+    def load(self) -> type[Method]:
+        """Imports method.py and returns its one Method subclass."""
+        module = None
+        if self.path.parent == METHODS_DIR and (METHODS_DIR / "__init__.py").is_file():
+            # A folder of the project's own methods package: import it as methods.<name>.method so that its
+            # relative and absolute imports of sibling modules both work.
+            module_name = f"methods.{self.name}.method"
+            module = importlib.import_module(module_name)
+        else:
+            module_name = f"splitbench_methods.{self.name}.method"
+            module = sys.modules.get(module_name)
+        if module is None:
+            file = self.path / "method.py"
+            if not file.is_file():
+                raise UserError(f"method '{self.name}' has no method.py in {self.path}")
+            spec = importlib.util.spec_from_file_location(module_name, file)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[module_name] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[module_name]
+                raise
+        classes = [c for _, c in inspect.getmembers(module, inspect.isclass)
+                   if issubclass(c, Method) and c is not Method and c.__module__ == module.__name__]
+        if len(classes) != 1:
+            raise UserError(f"method '{self.name}': method.py must define exactly one Method subclass, "
+                            f"found {len(classes)}")
+        cls = classes[0]
+        if cls.mode not in ("sync", "async"):
+            raise UserError(f"method '{self.name}': mode must be 'sync' or 'async', not {cls.mode!r}")
+        return cls
+
+    def preset_points(self, preset: str) -> list[dict]:
+        """The runs of one preset: product(scenes, resolutions, nets, protocols, variants, *grid values)."""
+        table = self.config.get("presets", {}).get(preset)
+        if table is None:
+            return []
+        grid = dict(table.get("grid", {}))
+        keys = sorted(grid)
+        points = []
+        for scene, res, net, proto, variant, *values in itertools.product(
+                table.get("scenes", ["cornell"]), table.get("resolutions", ["160x90"]), table.get("nets", ["ideal"]),
+                table.get("protocols", ["tcp"]), table.get("variants", ["default"]),
+                *[v if isinstance(v, list) else [v] for v in (grid[k] for k in keys)]):
+            point = {"method": self.name, "scene": scene, "resolution": res, "net": net, "protocol": proto,
+                     "variant": variant, "frames": int(table.get("frames", 3)), "set": dict(zip(keys, values))}
+            for opt in ("backend", "reference_spp", "reference_max_depth", "quality_every", "clock", "seed"):
+                if opt in table:
+                    point[opt] = table[opt]
+            points.append(point)
+        return points
+
+
+def check_param(method: str, defaults: dict, key: str, value):
+    """Validates one parameter override against [defaults]: known key, compatible type."""
+    if key not in defaults:
+        known = ", ".join(sorted(defaults)) or "none"
+        raise UserError(f"unknown parameter '{key}' for method '{method}' (known: {known})")
+    default = defaults[key]
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif isinstance(default, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, type(default))
+    if not ok:
+        raise UserError(f"parameter '{key}' of method '{method}' must be {type(default).__name__}, got {value!r}")
+    return value
+
+
+def parse_set_value(text: str):
+    """Parses a --set value as a TOML value (8, 0.5, true, "x", [1, 2]); a bare word stays a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def method_roots() -> list[Path]:
+    roots = [METHODS_DIR]
+    for extra in os.environ.get("SPLITBENCH_METHOD_PATHS", "").split(os.pathsep):
+        if extra.strip():
+            roots.append(Path(extra).resolve())
+    return roots
+
+
+def discover() -> dict[str, MethodSpec]:
+    """All method folders (name → spec), sorted by name. A malformed config.toml is a UserError naming it."""
+    specs: dict[str, MethodSpec] = {}
+    for root in method_roots():
+        if not root.is_dir():
+            continue
+        for cfg in sorted(root.glob("*/config.toml")):
+            name = cfg.parent.name
+            if name in specs:
+                continue
+            try:
+                config = tomllib.loads(cfg.read_text())
+            except tomllib.TOMLDecodeError as exc:
+                raise UserError(f"{cfg}: malformed TOML ({exc})") from None
+            specs[name] = MethodSpec(name, cfg.parent, config)
+    return dict(sorted(specs.items()))
+
+
+def get(name: str) -> MethodSpec:
+    specs = discover()
+    if name not in specs:
+        raise UserError(f"unknown method '{name}' (choose from {', '.join(specs) or 'none'})")
+    return specs[name]

@@ -1,0 +1,68 @@
+"""The report reads stored results only and writes index.html, plots and tables."""
+import pandas as pd
+import pytest
+
+from reports import build as report
+from suite import executor
+
+
+def test01_report_has_every_section_and_table(fake_config, tmp_path):
+    configs = [fake_config(net="bw=8mbps,delay=5ms"),
+               fake_config("synthetic_async", net="bw=8mbps,delay=5ms", frames=4, clock="work")]
+    executor.sweep(configs, tmp_path / "res")
+    index = report.build(tmp_path / "res", tmp_path / "rep")
+    page = index.read_text()
+    for title in ("Run matrix", "Frame-time breakdown", "Bandwidth", "SSIM / DSSIM per frame", "Speed vs error",
+                  "Machine and versions"):
+        assert f"<h2>{title}" in page
+    for name in ("runs.csv", "breakdown.csv", "stages.csv", "bandwidth.csv", "quality.csv", "speed_vs_error.csv",
+                 "machines.csv", "breakdown.png", "bandwidth.png", "quality.png", "speed_vs_error.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 0, name
+    runs = pd.read_csv(tmp_path / "rep" / "runs.csv")
+    assert sorted(runs["method"]) == ["synthetic_async", "synthetic_sync"]
+
+
+def test02_report_never_runs_anything_and_ignores_incomplete_runs(fake_config, fake_core, tmp_path, monkeypatch):
+    executor.sweep([fake_config()], tmp_path / "res")
+    (tmp_path / "res" / ".tmp-half-written").mkdir()
+    (tmp_path / "res" / "interrupted").mkdir()
+    monkeypatch.setattr(fake_core, "execute", lambda *a, **k: (_ for _ in ()).throw(AssertionError("ran")))
+    report.build(tmp_path / "res", tmp_path / "rep")
+    assert len(pd.read_csv(tmp_path / "rep" / "runs.csv")) == 1
+
+
+def test03_method_sections_and_extra_tables_are_included(fake_config, tmp_path, monkeypatch):
+    executor.sweep([fake_config()], tmp_path / "res")
+    extra = tmp_path / "validation"
+    extra.mkdir()
+    (extra / "netsim_vs_ns3.csv").write_text("profile,ratio\nwan-50m,1.02\n")
+    monkeypatch.setattr(report, "EXTRA_TABLE_DIRS", [extra])
+    monkeypatch.setattr(report, "method_sections",
+                        lambda frames, loaded: [("synthetic_sync", f"<p>{len(frames)} frames seen</p>")])
+    page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
+    assert "netsim_vs_ns3.csv" in page and "1.02" in page
+    assert "<h2>Method: synthetic_sync</h2><p>3 frames seen</p>" in page
+
+
+def test04_method_report_py_is_discovered(fake_config, tmp_path, monkeypatch):
+    import shutil
+    from pathlib import Path
+
+    fake_methods = Path(__file__).parent / "fake_methods"
+    root = tmp_path / "methods"
+    shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
+    (root / "synthetic_sync" / "report.py").write_text(
+        "def section(results_df, run_dirs):\n    return f'<p>{len(run_dirs)} runs here</p>'\n")
+    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
+    executor.sweep([fake_config()], tmp_path / "res")
+    page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
+    assert "<p>1 runs here</p>" in page
+
+
+def test05_breakdown_parts_sum_to_the_frame_time(fake_config, tmp_path):
+    executor.sweep([fake_config(net="bw=8mbps,delay=5ms")], tmp_path / "res")
+    report.build(tmp_path / "res", tmp_path / "rep")
+    table = pd.read_csv(tmp_path / "rep" / "breakdown.csv", index_col=0)
+    parts = table.drop(columns=["frame_ms"]).sum(axis=1)
+    assert parts.to_numpy() == pytest.approx(table["frame_ms"].to_numpy())
+    assert "cp_net_frame_ms" in table.columns
