@@ -14,7 +14,7 @@ BACKENDS = {
     "mitsuba": "Mitsuba 3 / Dr.Jit, variant chosen automatically (cuda_ad_rgb with a GPU, else llvm_ad_rgb)",
     "mitsuba-llvm": "Mitsuba 3 / Dr.Jit llvm_ad_rgb (CPU, vectorised, multi-threaded)",
     "mitsuba-cuda": "Mitsuba 3 / Dr.Jit cuda_ad_rgb (NVIDIA GPU)",
-    "mitsuba-scalar": "Mitsuba 3 scalar_rgb (last resort; slow)",
+    "mitsuba-scalar": "Mitsuba 3 scalar_rgb, one ray at a time (last resort when neither LLVM nor CUDA works; slow)",
 }
 
 __all__ = ["make", "list_backends", "Hits", "Tracer", "offset_ray_origin", "BACKENDS"]
@@ -33,7 +33,5 @@ def make(backend: str, scene) -> Tracer:
         from suite.trace.mitsuba_backend import MitsubaTracer
 
         variant = "auto" if backend == "mitsuba" else backend.split("-", 1)[1]
-        if variant == "scalar":
-            raise UserError("backend 'mitsuba-scalar' cannot trace numpy ray batches efficiently; use mitsuba-llvm")
         return MitsubaTracer(scene, variant=variant)
     raise UserError(f"unknown backend '{backend}' (choose from {', '.join(BACKENDS)})")

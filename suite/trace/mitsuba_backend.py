@@ -48,8 +48,9 @@ class MitsubaTracer(Tracer):
         tri = positions[self.scene.faces[faces]].reshape(-1, 3)
         mesh = mi.Mesh(name, len(tri), len(faces))
         params = mi.traverse(mesh)
-        params["vertex_positions"] = mi.Float(np.ascontiguousarray(tri, np.float32).reshape(-1))
-        params["faces"] = mi.UInt32(np.arange(len(tri), dtype=np.uint32))
+        # Buffer types differ per variant (mi.Float is a Python float in scalar_rgb): build what is there.
+        params["vertex_positions"] = type(params["vertex_positions"])(np.ascontiguousarray(tri, np.float32).reshape(-1))
+        params["faces"] = type(params["faces"])(np.arange(len(tri), dtype=np.uint32))
         params.update()
         return mesh
 
@@ -59,7 +60,8 @@ class MitsubaTracer(Tracer):
     def _update(self, t_s: float) -> None:
         positions = self.local_positions(self.scene.positions_at(t_s))
         tri = positions[self.scene.faces[self.dynamic_faces]].reshape(-1)
-        self._params[self._dynamic_key] = self.mi.Float(np.ascontiguousarray(tri, np.float32))
+        buffer_type = type(self._params[self._dynamic_key])
+        self._params[self._dynamic_key] = buffer_type(np.ascontiguousarray(tri, np.float32))
         self._params.update()
         self.rebuilds += 1
 
@@ -69,8 +71,32 @@ class MitsubaTracer(Tracer):
         ray.maxt = mi.Float(length)
         return ray
 
+    @property
+    def is_scalar(self) -> bool:
+        return self.variant.startswith("scalar")
+
+    def _scalar_rays(self, o, d, length):
+        """One Mitsuba ray at a time (scalar_rgb, the last-resort variant: correct but slow)."""
+        mi = self.mi
+        for i in range(len(d)):
+            ray = mi.Ray3f([float(x) for x in o[:, i]], [float(x) for x in d[i]])
+            ray.maxt = float(length[i])
+            yield i, ray
+
     def _intersect(self, o, d, length):
         n = len(d)
+        if self.is_scalar:
+            t = np.full(n, np.inf, np.float32)
+            prim = np.full(n, -1, np.int32)
+            uv = np.zeros((2, n), np.float32)
+            shapes = list(self.mscene.shapes())
+            for i, ray in self._scalar_rays(o, d, length):
+                pi = self.mscene.ray_intersect_preliminary(ray)
+                if pi.is_valid():
+                    faces = self._shape_faces[shapes.index(pi.shape) if len(shapes) > 1 else 0]
+                    t[i], prim[i] = pi.t, faces[int(pi.prim_index)]
+                    uv[:, i] = pi.prim_uv
+            return t, prim, uv[0], uv[1]
         pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
         fields = [pi.t, pi.prim_index, pi.prim_uv]
         multi = len(self._shape_faces) > 1
@@ -99,6 +125,11 @@ class MitsubaTracer(Tracer):
         return t, prim, uv[0], uv[1]
 
     def _occluded(self, o, d, length):
+        if self.is_scalar:
+            out = np.zeros(len(d), bool)
+            for i, ray in self._scalar_rays(o, d, length):
+                out[i] = bool(self.mscene.ray_test(ray))
+            return out
         return np.array(self.mscene.ray_test(self._rays(o, d, length)), bool)
 
     def raw_occluded(self, o, d, length):

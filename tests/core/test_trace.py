@@ -116,3 +116,22 @@ def test06_update_moves_animated_objects(backend):
 def test07_unknown_backend_is_a_user_error(room_scene):
     with pytest.raises(UserError, match="unknown backend 'optix'"):
         make("optix", room_scene)
+
+
+def test08_scalar_variant_is_a_slow_but_correct_last_resort(room_scene):
+    """mitsuba-scalar traces one ray at a time; it must agree with the vectorised backends."""
+    o = np.tile(np.float32([[0, 1, 0]]), (64, 1))
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(64, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ref = make("embree", room_scene)
+    scalar = make("mitsuba-scalar", room_scene)
+    try:
+        hs, he = scalar.intersect(o, d), ref.intersect(o, d)
+        np.testing.assert_array_equal(hs.prim, he.prim)
+        np.testing.assert_allclose(hs.t, he.t, rtol=1e-5)
+        np.testing.assert_array_equal(scalar.occluded(o, d, 0.0, 1.0), ref.occluded(o, d, 0.0, 1.0))
+    finally:
+        from suite.env import mitsuba
+
+        mitsuba("llvm")  # the variant is process-global: restore the default for later tests
