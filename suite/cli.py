@@ -203,10 +203,53 @@ def cmd_compare(args) -> int:
 # ------------------------------------------------------------------------------------------------------ bench
 
 def cmd_bench(args) -> int:
+    if args.what == "tracing":
+        return _bench_tracing(args.rest)
+    bench = _method_bench(args.what)
+    if hasattr(bench, "main"):
+        return int(bench.main(list(args.rest)) or 0)
+    _print_json(bench.run(list(args.rest)))
+    return 0
+
+
+def bench_names() -> list[str]:
+    """``tracing`` plus every method folder that ships a bench.py."""
+    from suite import registry
+
+    return ["tracing"] + [n for n, spec in registry.discover().items() if (spec.path / "bench.py").is_file()]
+
+
+def _method_bench(name: str):
+    """Imports ``methods/<name>/bench.py`` (as ``methods.<name>.bench`` for the project's own methods, so that its
+    imports of sibling modules work); it must define ``main(argv)`` or ``run(argv)``."""
+    import importlib
+    import importlib.util
+
+    from suite import registry
+
+    spec = registry.discover().get(name)
+    file = spec.path / "bench.py" if spec is not None else None
+    if file is None or not file.is_file():
+        raise UserError(f"unknown benchmark '{name}' (choose from {', '.join(bench_names())})")
+    if spec.path.parent == registry.METHODS_DIR and (registry.METHODS_DIR / "__init__.py").is_file():
+        module = importlib.import_module(f"methods.{name}.bench")
+    else:
+        module_spec = importlib.util.spec_from_file_location(f"splitbench_methods.{name}.bench", file)
+        module = importlib.util.module_from_spec(module_spec)
+        module_spec.loader.exec_module(module)
+    if not hasattr(module, "main") and not hasattr(module, "run"):
+        raise UserError(f"{file} defines neither main(argv) nor run(argv)")
+    return module
+
+
+def _bench_tracing(argv) -> int:
     from suite import runner
 
-    if args.what != "tracing":
-        raise UserError(f"unknown benchmark '{args.what}' (choose tracing)")
+    p = _Parser(prog=f"{PROG} bench tracing", description="suite vs raw backend rays/s and their ratio")
+    p.add_argument("--scene", default="cornell")
+    p.add_argument("--backend", default="embree")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
     try:
         from suite.trace import bench
     except ImportError as exc:
@@ -320,11 +363,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_compare)
 
-    s = sub.add_parser("bench", help="benchmarks: tracing (suite vs raw backend rays/s)")
-    s.add_argument("what", choices=("tracing",))
-    s.add_argument("--scene", default="cornell")
-    s.add_argument("--backend", default="embree")
-    s.add_argument("--json", action="store_true")
+    s = sub.add_parser("bench", help="benchmarks: tracing (suite vs raw backend rays/s), or METHOD (the "
+                       "method's bench.py)")
+    s.add_argument("what", help="tracing [--scene S] [--backend B] [--json], or a method with a bench.py "
+                   "(its own options; METHOD --help lists them)")
+    s.add_argument("rest", nargs=argparse.REMAINDER)
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("reproduce", help="run a preset matrix, then build the report")

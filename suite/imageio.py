@@ -16,6 +16,7 @@ so every call's result is checked and its error text is raised.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -50,6 +51,25 @@ def publish(tmp_path, path) -> None:
     atomic), giving it the permissions a normally created file would have."""
     os.chmod(tmp_path, _file_mode())
     os.replace(tmp_path, path)
+
+
+@contextlib.contextmanager
+def atomic_target(path, suffix: str = ".tmp"):
+    """Yields a temporary file name beside ``path``; on success it replaces ``path`` in one step, on any
+    error it is removed, so a crash never leaves a half-written file under the final name."""
+    path = Path(path)
+    fd, tmp_name = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.",
+                                    suffix=suffix)
+    os.close(fd)
+    try:
+        yield tmp_name
+        publish(tmp_name, path)
+    except BaseException:
+        try:
+            os.unlink(tmp_name)
+        except FileNotFoundError:
+            pass
+        raise
 
 
 def _oiio():
@@ -97,9 +117,7 @@ def _write_atomic(path, pixels: np.ndarray, attributes: dict[str, object]) -> No
     for name, value in attributes.items():
         spec.attribute(name, value)
     # The temporary file keeps the destination's extension: OpenImageIO picks the format from it.
-    fd, tmp_name = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
-    os.close(fd)
-    try:
+    with atomic_target(path, suffix=f".tmp{path.suffix}") as tmp_name:
         out = oiio.ImageOutput.create(tmp_name)
         if out is None:
             raise UserError(f"cannot write image '{path}': {oiio.geterror() or 'unsupported file type'}")
@@ -112,13 +130,6 @@ def _write_atomic(path, pixels: np.ndarray, attributes: dict[str, object]) -> No
             closed = out.close()
         if not closed:
             raise UserError(f"cannot write image '{path}': {out.geterror() or oiio.geterror()}")
-        publish(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def write_exr(path, img) -> None:

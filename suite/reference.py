@@ -32,7 +32,6 @@ import importlib.util
 import json
 import math
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -40,7 +39,7 @@ from typing import Callable
 import numpy as np
 
 from suite.errors import UserError
-from suite.imageio import publish, read_exr, write_exr
+from suite.imageio import atomic_target, read_exr, write_exr
 
 # Bump when the meaning of cached files changes (file layout, pass/seed scheme); old entries then miss.
 REFERENCE_FORMAT_VERSION = 1
@@ -275,17 +274,9 @@ def _paths(key: str) -> tuple[Path, Path, Path]:
 
 
 def _write_json_atomic(path: Path, obj) -> None:
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
+    with atomic_target(path) as tmp_name:
+        with open(tmp_name, "w") as f:
             json.dump(obj, f, indent=1, sort_keys=True)
-        publish(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def cached_render(description: dict, build_scene_dict: Callable[[], dict], spp: int, passes: int | None = None,

@@ -239,26 +239,22 @@ class Scene:
     # --- animation ----------------------------------------------------------------------------
     def positions_at(self, t_s: float) -> np.ndarray:
         """Vertex positions at time t with every rigid animation applied."""
+        return self._animated(self.positions, t_s, translate=True)
+
+    def normals_at(self, t_s: float) -> np.ndarray:
+        """Vertex normals at time t (rotated with their objects)."""
+        return self._animated(self.normals, t_s, translate=False)
+
+    def _animated(self, vectors: np.ndarray, t_s: float, translate: bool) -> np.ndarray:
         if not self.object_animations:
-            return self.positions
-        out = self.positions.astype(np.float64).copy()
+            return vectors
+        out = vectors.astype(np.float64).copy()
         vert_object = np.full(len(out), -1, np.int64)
         vert_object[self.faces.reshape(-1)] = np.repeat(self.face_object, 3)
         for anim in self.object_animations:
             sel = vert_object == anim.object_id
             m = anim.transform_at(t_s)
-            out[sel] = out[sel] @ m[:3, :3].T + m[:3, 3]
-        return out.astype(np.float32)
-
-    def normals_at(self, t_s: float) -> np.ndarray:
-        if not self.object_animations:
-            return self.normals
-        out = self.normals.astype(np.float64).copy()
-        vert_object = np.full(len(out), -1, np.int64)
-        vert_object[self.faces.reshape(-1)] = np.repeat(self.face_object, 3)
-        for anim in self.object_animations:
-            sel = vert_object == anim.object_id
-            out[sel] = out[sel] @ anim.transform_at(t_s)[:3, :3].T
+            out[sel] = out[sel] @ m[:3, :3].T + (m[:3, 3] if translate else 0.0)
         return out.astype(np.float32)
 
     def lights_at(self, t_s: float) -> list[PointLight]:
