@@ -5,12 +5,16 @@ frame; speed vs error across all runs; machine and versions. Extensions:
 
 * a method may ship ``methods/<name>/report.py`` with ``section(results_df, run_dirs) -> str`` (an HTML
   fragment); it gets the frames of its own runs (with the run columns of the matrix) and their directories;
+  a section that also takes the keywords ``out_dir`` (the report directory, for its own plots and CSVs, which
+  it links relative to index.html) and/or ``results_root`` (to read stored documents beside the runs, such as
+  benchmark output) gets them too;
 * every CSV under ``netsim/validation/`` (and any directory listed in ``EXTRA_TABLE_DIRS``) is included as a table.
 """
 from __future__ import annotations
 
 import html
 import importlib.util
+import inspect
 import shutil
 from pathlib import Path
 
@@ -30,8 +34,9 @@ def load_all(results_root) -> tuple[pd.DataFrame, pd.DataFrame, list[dict]]:
     for run_dir in results.complete_runs(results_root):
         run = results.load_run(run_dir)
         s, cfg = run["summary"], run["config"]
-        label = f"{s['method']}/{s['variant']} {Path(str(s['scene'])).stem} {s['net']}/{s['protocol']}"
         w, h = s["resolution"]
+        # One label per run of a preset: presets may sweep resolutions as well as networks.
+        label = f"{s['method']}/{s['variant']} {Path(str(s['scene'])).stem} {w}x{h} {s['net']}/{s['protocol']}"
         row = {"run": run_dir.name, "label": label, "method": s["method"], "variant": s["variant"],
                "mode": s["mode"], "scene": Path(str(s["scene"])).stem, "resolution": f"{w}x{h}", "net": s["net"],
                "protocol": s["protocol"], "frames": s["frames"], "backend": cfg["config"]["backend"],
@@ -153,8 +158,9 @@ def machine_table(loaded: list[dict]) -> pd.DataFrame:
     return df.drop(columns=["run"]).drop_duplicates().reset_index(drop=True)
 
 
-def method_sections(frames: pd.DataFrame, loaded: list[dict]) -> list[tuple[str, str]]:
-    """HTML from each method's optional report.py ``section(results_df, run_dirs)``."""
+def method_sections(frames: pd.DataFrame, loaded: list[dict], out_dir=None, results_root=None) -> list[tuple[str, str]]:
+    """HTML from each method's optional report.py ``section(results_df, run_dirs)`` (plus ``out_dir`` and
+    ``results_root`` for a section that takes them)."""
     out = []
     for name, spec in registry.discover().items():
         file = spec.path / "report.py"
@@ -165,7 +171,10 @@ def method_sections(frames: pd.DataFrame, loaded: list[dict]) -> list[tuple[str,
         try:
             module_spec.loader.exec_module(module)
             run_dirs = [r["dir"] for r in loaded if r["summary"]["method"] == name]
-            out.append((name, module.section(frames[frames["method"] == name].copy(), run_dirs)))
+            accepted = inspect.signature(module.section).parameters
+            extra = {k: v for k, v in (("out_dir", out_dir), ("results_root", results_root))
+                     if k in accepted and v is not None}
+            out.append((name, module.section(frames[frames["method"] == name].copy(), run_dirs, **extra)))
         except Exception as exc:  # noqa: BLE001 - one method's section must not break the report
             out.append((name, f"<p>section failed: {html.escape(f'{type(exc).__name__}: {exc}')}</p>"))
     return out
@@ -232,7 +241,7 @@ def build(results_root, out_dir) -> Path:
 
         body.append("<h2>Frames</h2>" + _thumbnails(loaded, out))
 
-        for name, fragment in method_sections(frames, loaded):
+        for name, fragment in method_sections(frames, loaded, out_dir=out, results_root=Path(results_root)):
             body.append(f"<h2>Method: {html.escape(name)}</h2>{fragment}")
 
         machines = machine_table(loaded)

@@ -45,9 +45,14 @@ class IdealLink:
         self.bandwidth_mbps = float(bandwidth_mbps)
         self.delay_ms = float(delay_ms)
 
-    def send(self, size_bytes: int, direction: str = "down", protocol: str = "tcp", at_s: float = 0.0) -> Delivery:
+    def send(self, size_bytes: int, direction: str = "down", protocol: str = "tcp", at_s: float = 0.0,
+             deadline_s: float | None = None) -> Delivery:
         transfer_s = 0.0 if math.isinf(self.bandwidth_mbps) else size_bytes * 8.0 / (self.bandwidth_mbps * 1e6)
-        return Delivery(arrival_s=at_s + self.delay_ms / 1e3 + transfer_s, delivered_bytes=int(size_bytes))
+        arrival_s = at_s + self.delay_ms / 1e3 + transfer_s
+        if deadline_s is not None and arrival_s > at_s + deadline_s:
+            # Too late: the receiver stopped waiting (the whole message counts as lost).
+            return Delivery(arrival_s=math.inf, delivered_bytes=0, lost_ranges=[(0, int(size_bytes))], complete=False)
+        return Delivery(arrival_s=arrival_s, delivered_bytes=int(size_bytes))
 
     def describe(self) -> str:
         return f"ideal link: bw={self.bandwidth_mbps} Mbit/s, delay={self.delay_ms} ms"
@@ -107,6 +112,11 @@ class Timeline:
             at_s = self.last_send_s[direction]
             self.reordered_sends += 1
         self.last_send_s[direction] = at_s
+        if protocol == "udp":
+            # The receiver gives a UDP message up after the timeout: datagrams arriving later count as lost,
+            # so a method never uses data that came after it stopped waiting.
+            return at_s, self.links[direction].send(int(size_bytes), direction=direction, protocol=protocol, at_s=at_s,
+                                                    deadline_s=self.message_timeout_s)
         return at_s, self.links[direction].send(int(size_bytes), direction=direction, protocol=protocol, at_s=at_s)
 
 

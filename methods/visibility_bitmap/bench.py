@@ -1,15 +1,37 @@
-"""Codec measurements on real visibility bitmaps, for the report's codec table.
+"""Benchmarks of seed 000's visibility bitmap: ``splitbench bench visibility_bitmap`` (or ``python -m
+methods.visibility_bitmap.bench``).
 
-``python -m methods.visibility_bitmap.bench --scene living_room --resolution 640x360 --frames 10`` renders the
-server's bitmaps along the scene's camera path (G-buffer + one shadow ray per pixel and light, seed 000
-Alg. 3B-2) and encodes/decodes the sequence with every codec, printing ratio, mean encode/decode ms per frame
-and whether the round trip was bit-exact. Times are wall times on this machine (one run, one process, the same
-bitmaps for every codec), so they compare codecs with each other, not machines.
+Parts (``--parts``, default all), each printed and stored in ``<results>/bench/visibility_bitmap.json`` (``--out``,
+default ``results``; a part that runs replaces its entry, the others are kept) so that the report can show them
+without running anything:
+
+``throughput``
+    The visibility pass (:func:`.method.visibility_pass`: ray generation from the G-buffer, the suite's
+    ``occluded`` query, the scatter into the mask, the packing) against ``tracer.raw_occluded`` on the very rays
+    the pass traced (recorded from one untimed pass), in one process, interleaved, median of ``--repeats``.
+    Figure of merit: the ratio of rays per second, stage / raw (goal >= 0.90).
+``linearity``
+    Server work against pixels x lights (seed 000 §3.2: one shadow ray per pixel and light): the visibility pass
+    and the whole server frame (G-buffer + visibility pass) at 3 resolutions x 3 light counts (the first N
+    lights of a many-light scene), median of ``--repeats``; least-squares fit ``ms = a * (pixels * lights) + b``,
+    slope ``a`` in ns per pixel-light and R².
+``codecs``
+    Bytes per frame and codec ratio, encode/decode ms, bit-exactness on real bitmaps of the camera path, at
+    640x360 ... 1920x1080 (the paper's 8,294,400-byte raw bitmap is the 1920x1080 paper32 row).
+``lights``
+    Bytes per frame against light count (the first N lights of ``--lights-scene``), per layout.
+
+Times are wall times on this machine and its backend; they compare parts of one run with each other, not
+machines. ``--loss`` keeps the former UDP loss sweep (printed, not stored).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -113,59 +135,377 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
     return rows
 
 
-def main(argv=None) -> None:
-    from suite.scene import load
-    from suite.trace import make
+# ------------------------------------------------------------------------------------------------ throughput
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", default="living_room")
-    ap.add_argument("--resolution", default="640x360")
-    ap.add_argument("--frames", type=int, default=10)
-    ap.add_argument("--lights", type=int, default=None, help="use only the first N lights")
-    ap.add_argument("--layouts", default="paper32,packed8")
-    ap.add_argument("--codecs", default=",".join(DEFAULT_CODECS))
-    ap.add_argument("--repeats", type=int, default=3)
+class _RecordingTracer:
+    """Forwards ``occluded`` to a tracer and keeps the exact arrays the backend received (after the suite's
+    argument handling), so the raw backend can be timed on the same rays."""
+
+    def __init__(self, tracer):
+        self.tracer = tracer
+        self.shift = getattr(tracer, "shift", None)
+        self.counters = tracer.counters
+        self.rays: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf):
+        from suite.trace.base import as_rays
+
+        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, getattr(self.tracer, "soa_origins", False))
+        self.rays.append((o.copy(), d.copy(), length.copy()))  # the caller may reuse its buffers
+        return self.tracer.occluded(origins, dirs, tmin, tmax)
+
+
+def _timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: str = "paper32",
+               repeats: int = 7) -> dict:
+    """Rays/s of the method's visibility pass against the raw backend on the same rays (goal: ratio >= 0.90)."""
+    from methods.visibility_bitmap.method import visibility_pass
+    from suite.gbuffer import render_gbuffer
+
+    if not hasattr(tracer, "raw_occluded"):
+        raise NotImplementedError(f"backend {getattr(tracer, 'name', '?')} has no raw entry point")
+    g = render_gbuffer(scene, tracer, t_s, resolution=tuple(resolution))
+    lights = scene.lights_at(t_s)
+    recorder = _RecordingTracer(tracer)
+    visibility_pass(g, lights, recorder, layout)
+    rays = int(sum(len(d) for _, d, _ in recorder.rays))
+
+    def stage():
+        visibility_pass(g, lights, tracer, layout)
+
+    def raw():
+        for o, d, length in recorder.rays:
+            tracer.raw_occluded(o, d, length)
+
+    stage(), raw()  # warm-up (page faults, caches)
+    stage_s, raw_s = [], []
+    for _ in range(max(repeats, 1)):  # interleaved: machine noise hits both alike
+        stage_s.append(_timed(stage))
+        raw_s.append(_timed(raw))
+    stage_rps = rays / float(np.median(stage_s))
+    raw_rps = rays / float(np.median(raw_s))
+    return {"scene": scene.name, "resolution": list(resolution), "lights": len(lights), "layout": layout,
+            "rays": rays, "repeats": repeats, "stage_ms": 1e3 * float(np.median(stage_s)),
+            "raw_ms": 1e3 * float(np.median(raw_s)), "stage_rays_per_s": stage_rps, "raw_rays_per_s": raw_rps,
+            "ratio": stage_rps / raw_rps, "goal": 0.90}
+
+
+# ------------------------------------------------------------------------------------------------ linearity
+
+def fit_line(x, y) -> dict:
+    """Least squares ``y = slope * x + intercept`` and its coefficient of determination R²."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    slope, intercept = np.polyfit(x, y, 1)
+    residual = y - (slope * x + intercept)
+    total = float(((y - y.mean()) ** 2).sum())
+    r2 = 1.0 - float((residual ** 2).sum()) / total if total > 0 else float("nan")
+    return {"slope": float(slope), "intercept": float(intercept), "r2": r2}
+
+
+def linearity(scene, tracer, resolutions, light_counts, t_s: float = 0.5, layout: str = "packed8",
+              repeats: int = 3) -> dict:
+    """Server work (G-buffer + visibility pass) at every resolution x light count; linear fits in pixels x lights.
+
+    ``ms = a * (pixels * lights) + b``: ``a`` is reported in ns per pixel-light. The visibility pass is the work
+    the claim is about (one ray per pixel and light); the whole server frame adds the G-buffer, which grows with
+    pixels only, so its fit is reported beside it.
+    """
+    from methods.visibility_bitmap.method import visibility_pass
+    from suite.gbuffer import render_gbuffer
+
+    all_lights = scene.lights_at(t_s)
+    if max(light_counts) > len(all_lights):
+        raise ValueError(f"scene {scene.name} has {len(all_lights)} lights, fewer than {max(light_counts)}")
+    points = []
+    for w, h in resolutions:
+        for n in light_counts:
+            lights = all_lights[:n]
+            gbuffer_s, visibility_s, rays = [], [], 0
+            for _ in range(max(repeats, 1)):
+                t0 = time.perf_counter()
+                g = render_gbuffer(scene, tracer, t_s, resolution=(w, h))
+                t1 = time.perf_counter()
+                before = tracer.counters["rays_occluded"]
+                visibility_pass(g, lights, tracer, layout)
+                t2 = time.perf_counter()
+                rays = tracer.counters["rays_occluded"] - before
+                gbuffer_s.append(t1 - t0)
+                visibility_s.append(t2 - t1)
+            points.append({"resolution": [w, h], "pixels": w * h, "lights": n, "pixel_lights": w * h * n,
+                           "rays": int(rays), "gbuffer_ms": 1e3 * float(np.median(gbuffer_s)),
+                           "visibility_ms": 1e3 * float(np.median(visibility_s)),
+                           "server_ms": 1e3 * float(np.median(np.add(gbuffer_s, visibility_s)))})
+    x = [p["pixel_lights"] for p in points]
+    fits = {}
+    for key in ("visibility_ms", "server_ms"):
+        f = fit_line(x, [p[key] for p in points])
+        fits[key] = {"ns_per_pixel_light": 1e6 * f["slope"], "intercept_ms": f["intercept"], "r2": f["r2"]}
+    return {"scene": scene.name, "layout": layout, "repeats": repeats, "points": points, "fit": fits}
+
+
+# --------------------------------------------------------------------------------------------- bytes, codecs
+
+def codecs_by_resolution(scene, tracer, resolutions, frames: int, codec_specs, layouts=("paper32", "packed8"),
+                         repeats: int = 1) -> list[dict]:
+    """The codec table at each resolution, on the first ``frames`` bitmaps of the camera path."""
+    rows = []
+    for w, h in resolutions:
+        vis = render_bitmaps(scene, tracer, (w, h), frames)
+        for layout in layouts:
+            if layout == "paper32" and vis[0].shape[-1] > bm.PAPER_MAX_LIGHTS:
+                continue
+            for row in codec_table(vis, layout, codec_specs, repeats=repeats):
+                rows.append({"scene": scene.name, "resolution": [w, h], "pixels": w * h, **row})
+    return rows
+
+
+def bytes_by_lights(scene, tracer, resolution, light_counts, frames: int, codec_specs,
+                    layouts=bm.LAYOUTS) -> list[dict]:
+    """Bytes per frame against light count (the first N lights of ``scene``), per layout and codec."""
+    rows = []
+    for n in light_counts:
+        vis = render_bitmaps(scene, tracer, tuple(resolution), frames, light_limit=n)
+        for layout in layouts:
+            if layout == "paper32" and n > bm.PAPER_MAX_LIGHTS:
+                continue
+            for row in codec_table(vis, layout, codec_specs, repeats=1):
+                rows.append({"scene": scene.name, "resolution": list(resolution), "light_count": n,
+                             "raw_bytes_per_frame": bm.bitmap_nbytes(*resolution, n, layout),
+                             **{k: row[k] for k in ("codec", "layout", "available", "reason", "bytes_per_frame",
+                                                    "ratio", "bit_exact") if k in row}})
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------- storage
+
+BENCH_FILE = "visibility_bitmap.json"
+SCHEMA_VERSION = 1
+
+
+def bench_path(results_root) -> Path:
+    return Path(results_root) / "bench" / BENCH_FILE
+
+
+def load(results_root) -> dict | None:
+    """The stored benchmark document under ``results_root``, or None (read-only; used by the report)."""
+    path = bench_path(results_root)
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def store(results_root, parts: dict) -> Path:
+    """Merges ``parts`` into the stored document (atomically) and returns its path."""
+    from suite.results import _jsonable
+
+    path = bench_path(results_root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = load(results_root) or {}
+    doc.update(_jsonable(parts))
+    doc["schema_version"] = SCHEMA_VERSION
+    doc["host"] = {"node": platform.node(), "machine": platform.machine(), "cpu_count": os.cpu_count(),
+                   "python": platform.python_version()}
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
+    os.replace(tmp, path)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------------- CLI
+
+PARTS = ("throughput", "linearity", "codecs", "lights")
+TABLE_CODECS = ("none", "lzo", "lz4", "zstd", "bitplane+zstd", "delta+bitplane+zstd", "h264")
+
+
+def _resolutions(text: str) -> list[tuple[int, int]]:
+    from suite.runner import parse_resolution
+
+    return [tuple(parse_resolution(r)) for r in text.split(",") if r.strip()]
+
+
+def _ints(text: str) -> list[int]:
+    from suite.errors import UserError
+
+    try:
+        values = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UserError(f"expected comma-separated integers, got '{text}'") from None
+    if not values or min(values) < 1:
+        raise UserError(f"expected integers >= 1, got '{text}'")
+    return values
+
+
+def parser() -> argparse.ArgumentParser:
+    from suite.cli import _Parser
+
+    ap = _Parser(prog="splitbench bench visibility_bitmap", description=__doc__.splitlines()[0])
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
+    ap.add_argument("--scene", default="living_room", help="throughput and codecs scene")
+    ap.add_argument("--backend", default="embree")
+    ap.add_argument("--resolution", default="640x360", help="throughput resolution")
+    ap.add_argument("--repeats", type=int, default=7, help="throughput repeats (median)")
+    ap.add_argument("--lights-scene", default="arena", help="linearity and light-count scene (many lights)")
+    ap.add_argument("--linearity-resolutions", default="320x180,480x270,640x360")
+    ap.add_argument("--linearity-lights", default="8,24,72")
+    ap.add_argument("--linearity-repeats", type=int, default=3)
+    ap.add_argument("--codec-resolutions", default="640x360,1280x720,1920x1080")
+    ap.add_argument("--codecs", default=",".join(TABLE_CODECS))
+    ap.add_argument("--frames", type=int, default=3, help="codec and light-count sequences: frames of the path")
+    ap.add_argument("--light-counts", default="1,3,8,32,33,73")
+    ap.add_argument("--lights-resolution", default="640x360")
+    ap.add_argument("--out", default="results", help="results root; the document goes to <out>/bench/")
+    ap.add_argument("--no-store", action="store_true", help="print only")
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--loss", default="", help="comma-separated UDP loss rates (e.g. 0,0.01): run the loss sweep "
-                                               "instead of the codec table")
+    ap.add_argument("--loss", default="", help="comma-separated UDP loss rates (e.g. 0,0.01): run the UDP loss "
+                                               "sweep instead (printed, not stored)")
     ap.add_argument("--codec", default="lz4", help="loss sweep: wire codec")
     ap.add_argument("--slice-rows", type=int, default=8, help="loss sweep: udp_slice_rows")
-    args = ap.parse_args(argv)
-    w, h = (int(x) for x in args.resolution.lower().split("x"))
-    scene = load(args.scene)
-    tracer = make("embree", scene)
+    return ap
+
+
+def run(args) -> dict:
+    """Runs the chosen parts; returns ``{part: result}``."""
+    from suite import runner
+    from suite.errors import UserError
+
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown or not parts:
+        raise UserError(f"unknown benchmark part '{unknown[0] if unknown else args.parts}' "
+                        f"(choose from {', '.join(PARTS)})")
+    if args.backend not in runner.backend_names():
+        raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
+    for name in (args.scene, args.lights_scene):
+        if not os.path.isfile(name) and name not in runner.scene_names():
+            raise UserError(f"unknown scene '{name}'")
+    if args.repeats < 1 or args.linearity_repeats < 1 or args.frames < 1:
+        raise UserError("--repeats, --linearity-repeats and --frames must be >= 1")
+    out = {}
+    cache = {}
+
+    def scene_and_tracer(name):
+        if name not in cache:
+            scene = runner.load_scene(name)
+            cache[name] = (scene, runner.make_tracer(args.backend, scene))
+        return cache[name]
+
+    if "throughput" in parts:
+        scene, tracer = scene_and_tracer(args.scene)
+        out["throughput"] = {"backend": args.backend,
+                             **throughput(scene, tracer, _resolutions(args.resolution)[0], repeats=args.repeats)}
+    if "linearity" in parts:
+        scene, tracer = scene_and_tracer(args.lights_scene)
+        out["linearity"] = {"backend": args.backend,
+                            **linearity(scene, tracer, _resolutions(args.linearity_resolutions),
+                                        _ints(args.linearity_lights), repeats=args.linearity_repeats)}
+    if "codecs" in parts:
+        scene, tracer = scene_and_tracer(args.scene)
+        out["codecs"] = codecs_by_resolution(scene, tracer, _resolutions(args.codec_resolutions), args.frames,
+                                             args.codecs.split(","))
+    if "lights" in parts:
+        scene, tracer = scene_and_tracer(args.lights_scene)
+        counts = [n for n in _ints(args.light_counts) if n <= len(scene.lights_at(0.0))]
+        out["lights"] = bytes_by_lights(scene, tracer, _resolutions(args.lights_resolution)[0], counts,
+                                        args.frames, ("none", "lz4", "bitplane+zstd"))
+    return out
+
+
+def format_results(out: dict) -> str:
+    lines = []
+    if "throughput" in out:
+        r = out["throughput"]
+        w, h = r["resolution"]
+        lines += [f"visibility pass vs raw {r['backend']} occluded: scene {r['scene']} {w}x{h}, {r['lights']} lights, "
+                  f"{r['rays']:,} shadow rays, median of {r['repeats']}",
+                  f"  stage {r['stage_rays_per_s']:>13,.0f} rays/s ({r['stage_ms']:.1f} ms)   "
+                  f"raw {r['raw_rays_per_s']:>13,.0f} rays/s ({r['raw_ms']:.1f} ms)   "
+                  f"ratio {r['ratio']:.3f}  (goal >= {r['goal']:.2f})"]
+    if "linearity" in out:
+        r = out["linearity"]
+        lines.append(f"server work vs pixels x lights: scene {r['scene']}, median of {r['repeats']}")
+        lines.append(f"  {'resolution':>10} {'lights':>6} {'pixel-lights':>13} {'rays':>11} {'G-buffer ms':>12} "
+                     f"{'visibility ms':>14} {'server ms':>10}")
+        for p in r["points"]:
+            w, h = p["resolution"]
+            lines.append(f"  {f'{w}x{h}':>10} {p['lights']:6d} {p['pixel_lights']:13,d} {p['rays']:11,d} "
+                         f"{p['gbuffer_ms']:12.1f} {p['visibility_ms']:14.1f} {p['server_ms']:10.1f}")
+        for key, f in r["fit"].items():
+            lines.append(f"  fit {key:<14} = {f['ns_per_pixel_light']:.2f} ns x pixels x lights + "
+                         f"{f['intercept_ms']:.1f} ms   R² {f['r2']:.4f}")
+    if "codecs" in out:
+        lines.append("codecs on the camera path's bitmaps (bytes per frame, ms per frame):")
+        lines.append(f"  {'resolution':>10} {'layout':8} {'codec':20} {'wire B/frame':>13} {'ratio':>8} "
+                     f"{'enc ms':>8} {'dec ms':>8}  exact")
+        for r in out["codecs"]:
+            w, h = r["resolution"]
+            if not r["available"]:
+                lines.append(f"  {f'{w}x{h}':>10} {r['layout']:8} {r['codec']:20} unavailable: {r['reason']}")
+                continue
+            lines.append(f"  {f'{w}x{h}':>10} {r['layout']:8} {r['codec']:20} {r['bytes_per_frame']:13,.0f} "
+                         f"{r['ratio']:8.1f} {r['encode_ms']:8.2f} {r['decode_ms']:8.2f}  {r['bit_exact']}")
+    if "lights" in out:
+        lines.append("bytes per frame vs light count:")
+        for r in out["lights"]:
+            if r.get("available", True):
+                lines.append(f"  {r['light_count']:4d} lights {r['layout']:8} {r['codec']:15} raw "
+                             f"{r['raw_bytes_per_frame']:>10,d}  wire {r['bytes_per_frame']:>12,.0f}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
     if args.loss:
-        rows = loss_sweep(scene, tracer, (w, h), args.frames, [float(x) for x in args.loss.split(",")],
-                          params={"layout": "packed8", "codec": args.codec, "udp_slice_rows": args.slice_rows})
-        if args.json:
-            print(json.dumps(rows, indent=1))
-            return
-        print(f"{args.scene} {w}x{h}, {args.frames} frames, UDP, codec {args.codec}, {args.slice_rows} rows per slice")
-        print(f"{'loss':>6} {'repair':9} {'rows repaired':>13} {'bad':>4} {'SSIM':>7} {'PSNR dB':>8} {'FLIP':>7}")
-        for r in rows:
-            print(f"{r['loss']:6.3f} {r['repair']:9} {100 * r['rows_repaired_fraction']:12.2f}% {r['bad_frames']:4d} "
-                  f"{r['ssim']:7.4f} {r['psnr_db']:8.2f} {r['flip']:7.4f}")
-        return
-    vis = render_bitmaps(scene, tracer, (w, h), args.frames, args.lights)
-    rows = []
-    for layout in args.layouts.split(","):
-        if layout == "paper32" and vis[0].shape[-1] > bm.PAPER_MAX_LIGHTS:
-            continue
-        rows += codec_table(vis, layout, args.codecs.split(","), repeats=args.repeats)
+        return _loss_main(args)
+    out = run(args)
+    if not args.no_store:
+        path = store(args.out, out)
+        out_note = f"stored: {path}"
+    else:
+        out_note = "not stored (--no-store)"
+    if args.json:
+        from suite.cli import _print_json
+
+        _print_json(out)
+    else:
+        print(format_results(out))
+        print(out_note)
+    return 0
+
+
+def _loss_main(args) -> int:
+    from suite import runner
+
+    w, h = _resolutions(args.resolution)[0]
+    scene = runner.load_scene(args.scene)
+    tracer = runner.make_tracer(args.backend, scene)
+    rows = loss_sweep(scene, tracer, (w, h), args.frames, [float(x) for x in args.loss.split(",")],
+                      params={"layout": "packed8", "codec": args.codec, "udp_slice_rows": args.slice_rows})
     if args.json:
         print(json.dumps(rows, indent=1))
-        return
-    print(f"{args.scene} {w}x{h}, {vis[0].shape[-1]} lights, {args.frames} frames "
-          f"(lit fraction {np.mean([v.mean() for v in vis]):.3f})")
-    print(f"{'layout':8} {'codec':22} {'raw B/frame':>12} {'wire B/frame':>13} {'ratio':>9} {'enc ms':>8} "
-          f"{'dec ms':>8}  exact")
+        return 0
+    print(f"{args.scene} {w}x{h}, {args.frames} frames, UDP, codec {args.codec}, {args.slice_rows} rows per slice")
+    print(f"{'loss':>6} {'repair':9} {'rows repaired':>13} {'bad':>4} {'SSIM':>7} {'PSNR dB':>8} {'FLIP':>7}")
     for r in rows:
-        if not r["available"]:
-            print(f"{r['layout']:8} {r['codec']:22} unavailable: {r['reason']}")
-            continue
-        print(f"{r['layout']:8} {r['codec']:22} {r['raw_bytes'] / r['frames']:12.0f} {r['bytes_per_frame']:13.0f} "
-              f"{r['ratio']:9.1f} {r['encode_ms']:8.2f} {r['decode_ms']:8.2f}  {r['bit_exact']}")
+        print(f"{r['loss']:6.3f} {r['repair']:9} {100 * r['rows_repaired_fraction']:12.2f}% {r['bad_frames']:4d} "
+              f"{r['ssim']:7.4f} {r['psnr_db']:8.2f} {r['flip']:7.4f}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    from suite.errors import UserError
+
+    try:
+        sys.exit(main())
+    except UserError as exc:
+        print(f"splitbench: error: {exc}", file=sys.stderr)
+        sys.exit(UserError.exit_code)

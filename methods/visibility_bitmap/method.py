@@ -55,7 +55,13 @@ Parameters (``config.toml`` [defaults]; ``--set key=value``):
     Fixed cost added to each modelled memory transfer.
 
 Per-frame facts beyond the harness's columns are in :attr:`VisibilityBitmap.frame_info` after each frame
-(raw and wire bytes, keyframe, rows repaired, frame status, problems found).
+(raw and wire bytes, keyframe, rows repaired, frame status, problems found); the results store keeps them as
+``info_<key>`` columns.
+
+The report section "Seed 000 — visibility bitmap" (:mod:`.report`) reads the runs of ``[presets.quick]`` /
+``[presets.full]`` and the figures stored by ``splitbench bench visibility_bitmap`` (:mod:`.bench`: visibility
+pass against raw occluded-ray throughput, server work against pixels × lights, bytes and codecs against
+resolution and light count).
 """
 from __future__ import annotations
 
@@ -85,6 +91,20 @@ def decode_inputs(data: bytes) -> tuple[float, np.ndarray, tuple[int, int] | Non
     values = _INPUTS.unpack_from(data)
     resolution = _RESOLUTION.unpack_from(data, _INPUTS.size) if len(data) >= _INPUTS.size + _RESOLUTION.size else None
     return values[0], np.asarray(values[1:], np.float64).reshape(3, 3), resolution
+
+
+def visibility_pass(g, lights, tracer, layout: str) -> tuple[np.ndarray, np.ndarray]:
+    """The server's visibility pass (seed 000 Alg. 3B-2 steps 3-4, §4.4.2): one shadow ray per pixel and light
+    from the G-buffer position, then bit i of the pixel's record = light i unobstructed.
+
+    Returns the ``(H, W, L)`` bool visibility and the packed bitmap (:func:`.bitmap.pack`). This is exactly what
+    the ``visibility`` stage times, and what ``splitbench bench visibility_bitmap`` compares with the backend's
+    raw occluded-ray throughput.
+    """
+    from suite.shading import point_light_visibility
+
+    visibility = point_light_visibility(g, lights, tracer)
+    return visibility, bm.pack(visibility, layout)
 
 
 class VisibilityBitmap(Method):
@@ -179,7 +199,6 @@ class VisibilityBitmap(Method):
     def _distributed(self, ctx) -> np.ndarray:
         """Algorithms 3B-1 (client) and 3B-2 (server), scheduled as in seed 000 Figure 7."""
         from suite.gbuffer import render_gbuffer
-        from suite.shading import point_light_visibility
 
         w, h = ctx.resolution
         scene, tracer = ctx.scene, ctx.tracer
@@ -219,8 +238,7 @@ class VisibilityBitmap(Method):
 
         # Server, steps 3-4: one shadow ray per pixel and light, bit i = light i unobstructed (§3.2).
         with ctx.stage("visibility", place="server") as st:
-            visibility = point_light_visibility(g_server, lights, tracer)
-            raw = bm.pack(visibility, self.layout)
+            visibility, raw = visibility_pass(g_server, lights, tracer, self.layout)
             st.pixels = sw * sh
             st.bytes = raw.nbytes
 

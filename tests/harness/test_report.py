@@ -38,7 +38,7 @@ def test03_method_sections_and_extra_tables_are_included(fake_config, tmp_path, 
     (extra / "netsim_vs_ns3.csv").write_text("profile,ratio\nwan-50m,1.02\n")
     monkeypatch.setattr(report, "EXTRA_TABLE_DIRS", [extra])
     monkeypatch.setattr(report, "method_sections",
-                        lambda frames, loaded: [("synthetic_sync", f"<p>{len(frames)} frames seen</p>")])
+                        lambda frames, loaded, **kw: [("synthetic_sync", f"<p>{len(frames)} frames seen</p>")])
     page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
     assert "netsim_vs_ns3.csv" in page and "1.02" in page
     assert "<h2>Method: synthetic_sync</h2><p>3 frames seen</p>" in page
@@ -57,6 +57,23 @@ def test04_method_report_py_is_discovered(fake_config, tmp_path, monkeypatch):
     executor.sweep([fake_config()], tmp_path / "res")
     page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
     assert "<p>1 runs here</p>" in page
+
+
+def test06_a_method_section_that_takes_out_dir_and_results_root_gets_them(fake_config, tmp_path, monkeypatch):
+    import shutil
+    from pathlib import Path
+
+    fake_methods = Path(__file__).parent / "fake_methods"
+    root = tmp_path / "methods"
+    shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
+    (root / "synthetic_sync" / "report.py").write_text(
+        "def section(results_df, run_dirs, out_dir=None, results_root=None):\n"
+        "    (out_dir / 'extra.csv').write_text('x\\n1\\n')\n"
+        "    return f'<p>root {results_root.name}</p>'\n")
+    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
+    executor.sweep([fake_config()], tmp_path / "res")
+    page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
+    assert "<p>root res</p>" in page and (tmp_path / "rep" / "extra.csv").read_text() == "x\n1\n"
 
 
 def test05_breakdown_parts_sum_to_the_frame_time(fake_config, tmp_path):

@@ -129,7 +129,7 @@ def test07_sends_out_of_time_order_queue_behind_earlier_ones():
 
 def test08_a_message_that_never_arrives_releases_dependants_after_the_timeout():
     class Blackhole:
-        def send(self, size_bytes, direction, protocol, at_s):
+        def send(self, size_bytes, direction, protocol, at_s, deadline_s=None):
             from suite.timeline import Delivery
             return Delivery(arrival_s=math.inf, delivered_bytes=0, lost_ranges=[(0, size_bytes)], complete=False)
 
@@ -139,6 +139,22 @@ def test08_a_message_that_never_arrives_releases_dependants_after_the_timeout():
     after = g.add_stage("use", "client", 1 * MS)
     assert not ev.complete and ev.lost_bytes == 100
     assert after.start_s == pytest.approx(0.1)
+
+
+def test08b_udp_data_arriving_after_the_timeout_counts_as_lost():
+    """The receiver stops waiting for a UDP message at the timeout: later datagrams are lost to the method."""
+    import netsim
+
+    # 100 kB at 1 Mbit/s takes 0.8 s; the receiver waits 0.1 s.
+    links = {"down": netsim.make_network("bw=1mbps,delay=5ms", seed=0),
+             "up": netsim.make_network("bw=1mbps,delay=5ms", seed=0)}
+    tl = Timeline(links, message_timeout_s=0.1)
+    g = tl.group("frame", 0, 0.0)
+    ev, d = g.add_message("m", 100_000, "down", protocol="udp")
+    assert not ev.complete
+    assert 0 < ev.delivered_bytes < 0.15 * 100_000  # only what arrived within 100 ms (about 11.9 kB)
+    assert ev.end_s <= 0.1 + 1e-9
+    assert sum(end - start for start, end in d.lost_ranges) == 100_000 - ev.delivered_bytes
 
 
 from hypothesis import given, settings

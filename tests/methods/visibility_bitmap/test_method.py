@@ -34,7 +34,7 @@ class LossyLink(IdealLink):
         super().__init__(bandwidth_mbps=1000.0, delay_ms=delay_ms)
         self.ranges, self.threshold, self.never = lost_fraction_ranges, lose_sizes_over, never_arrives
 
-    def send(self, size_bytes, direction="down", protocol="tcp", at_s=0.0):
+    def send(self, size_bytes, direction="down", protocol="tcp", at_s=0.0, deadline_s=None):
         d = super().send(size_bytes, direction, protocol, at_s)
         if size_bytes < self.threshold:
             return d

@@ -1,0 +1,77 @@
+"""Preset expansion: the main product of [presets.<name>] plus [[presets.<name>.runs]] sub-grids that inherit
+the keys they omit, without duplicate points; malformed sub-grids are user errors."""
+import shutil
+from pathlib import Path
+
+import pytest
+
+from suite import presets, registry
+from suite.errors import UserError
+
+FAKE_METHODS = Path(__file__).parent / "fake_methods"
+
+SUBGRIDS = """
+[presets.quick]
+scenes = ["toy"]
+resolutions = ["16x8"]
+frames = 3
+nets = ["ideal", "bw=8mbps,delay=5ms"]
+protocols = ["tcp"]
+variants = ["default", "dim"]
+backend = "fake"
+reference_spp = 4
+
+[[presets.quick.runs]]
+resolutions = ["32x16"]
+variants = ["paper"]
+reference_spp = 0
+quality_every = -1
+[presets.quick.runs.grid]
+payload_bytes = [1000, 2000]
+
+[[presets.quick.runs]]
+nets = ["ideal"]
+variants = ["default"]
+"""
+
+
+@pytest.fixture
+def method_with_subgrids(tmp_path, fake_core, monkeypatch):
+    root = tmp_path / "methods"
+    shutil.copytree(FAKE_METHODS / "synthetic_sync", root / "synthetic_sync")
+    cfg = root / "synthetic_sync" / "config.toml"
+    cfg.write_text(cfg.read_text() + SUBGRIDS)
+    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
+    return cfg
+
+
+def test01_subgrids_add_their_products_and_inherit_the_keys_they_omit(method_with_subgrids):
+    points = presets.preset_points(registry.get("synthetic_sync"), "quick")
+    main = [p for p in points if p["resolution"] == "16x8"]
+    extra = [p for p in points if p["resolution"] == "32x16"]
+    assert len(main) == 4  # 2 nets x 2 variants; the second sub-grid's 1 point is one of them
+    assert len(extra) == 2 * 2  # 2 nets (inherited) x 2 payloads
+    assert all(p["variant"] == "paper" and p["reference_spp"] == 0 and p["quality_every"] == -1
+               and p["frames"] == 3 and p["backend"] == "fake" for p in extra)
+    assert sorted(p["set"]["payload_bytes"] for p in extra) == [1000, 1000, 2000, 2000]
+    assert all(p["set"] == {} and p["reference_spp"] == 4 and "quality_every" not in p for p in main)
+
+
+def test02_configs_validates_every_subgrid_point(method_with_subgrids):
+    configs, problems = presets.configs("quick", methods="synthetic_sync")
+    assert problems == [] and len(configs) == 8
+    assert sorted({tuple(c["resolution"]) for c in configs}) == [(16, 8), (32, 16)]
+
+
+@pytest.mark.parametrize("text, message", [
+    ('\n[presets.quick]\nruns = [1, 2]\n', "must be an array of tables"),
+    ('\n[presets.quick]\n[[presets.quick.runs]]\n[[presets.quick.runs.runs]]\n', "may not nest runs"),
+])
+def test03_malformed_subgrids_are_user_errors(tmp_path, fake_core, monkeypatch, text, message):
+    root = tmp_path / "methods"
+    shutil.copytree(FAKE_METHODS / "synthetic_sync", root / "synthetic_sync")
+    cfg = root / "synthetic_sync" / "config.toml"
+    cfg.write_text(cfg.read_text() + text)
+    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
+    with pytest.raises(UserError, match=message):
+        presets.preset_points(registry.get("synthetic_sync"), "quick")

@@ -1,0 +1,64 @@
+"""``splitbench bench visibility_bitmap``: its parts on a tiny case, the stored document the report reads, the
+linear fit, and the CLI hook."""
+import json
+
+import numpy as np
+import pytest
+
+from methods.visibility_bitmap import bench
+
+TINY = ["--scene", "living_room", "--lights-scene", "living_room", "--resolution", "32x18", "--repeats", "1",
+        "--linearity-resolutions", "16x9,32x18,48x27", "--linearity-lights", "1,2,3", "--linearity-repeats", "1",
+        "--codec-resolutions", "32x18", "--codecs", "none,lz4", "--frames", "2", "--light-counts", "1,3",
+        "--lights-resolution", "16x9"]
+
+
+def test01_fit_line_recovers_an_exact_line_and_scores_noise_lower():
+    x = np.array([1.0, 2.0, 4.0, 8.0])
+    fit = bench.fit_line(x, 3.0 * x + 2.0)
+    assert fit["slope"] == pytest.approx(3.0) and fit["intercept"] == pytest.approx(2.0)
+    assert fit["r2"] == pytest.approx(1.0)
+    assert bench.fit_line(x, [5.0, 1.0, 9.0, 2.0])["r2"] < 0.5
+
+
+def test02_every_part_runs_on_a_tiny_case_and_is_stored_for_the_report(tmp_path, capsys):
+    assert bench.main(TINY + ["--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "ratio" in printed and "R²" in printed and "stored:" in printed
+    doc = json.loads((tmp_path / "bench" / "visibility_bitmap.json").read_text())
+    assert doc == bench.load(tmp_path) and doc["schema_version"] == bench.SCHEMA_VERSION
+    t = doc["throughput"]
+    assert t["rays"] > 0 and t["ratio"] == pytest.approx(t["stage_rays_per_s"] / t["raw_rays_per_s"])
+    lin = doc["linearity"]
+    assert len(lin["points"]) == 9 and {p["pixel_lights"] for p in lin["points"]} >= {16 * 9, 48 * 27 * 3}
+    assert set(lin["fit"]) == {"visibility_ms", "server_ms"}
+    assert all(f["r2"] <= 1.0 for f in lin["fit"].values())
+    # seed 000 §3.2: 4 bytes per pixel whatever the light count
+    raw = [r for r in doc["codecs"] if r["layout"] == "paper32" and r["codec"] == "none"][0]
+    assert raw["raw_bytes"] / raw["frames"] == 32 * 18 * 4 and raw["bit_exact"]
+    packed = {r["light_count"]: r["raw_bytes_per_frame"] for r in doc["lights"]
+              if r["layout"] == "packed8" and r["codec"] == "none"}
+    assert packed == {1: 16 * 9, 3: 16 * 9}
+
+
+def test03_a_part_that_runs_again_replaces_only_its_own_entry(tmp_path):
+    bench.store(tmp_path, {"throughput": {"ratio": 0.5}, "linearity": {"fit": {}}})
+    bench.store(tmp_path, {"throughput": {"ratio": 0.7}})
+    doc = bench.load(tmp_path)
+    assert doc["throughput"] == {"ratio": 0.7} and doc["linearity"] == {"fit": {}}
+
+
+def test04_cli_runs_the_method_bench_and_refuses_unknown_parts(tmp_path, capsys):
+    from suite import cli
+
+    code = cli.main(["bench", "visibility_bitmap", "--parts", "lights", "--lights-scene", "living_room",
+                     "--light-counts", "2", "--lights-resolution", "16x9", "--frames", "1", "--out", str(tmp_path),
+                     "--json"])
+    out = capsys.readouterr().out
+    assert code == 0 and json.loads(out)["lights"][0]["light_count"] == 2
+    code = cli.main(["bench", "visibility_bitmap", "--parts", "speed"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "unknown benchmark part 'speed'" in err
+    code = cli.main(["bench", "no_such_method"])
+    err = capsys.readouterr().err
+    assert code == 2 and "unknown benchmark 'no_such_method'" in err and "visibility_bitmap" in err

@@ -1,0 +1,99 @@
+"""The visibility pass (seed 000 Alg. 3B-2 steps 3-4): the column-wise core kernel traces exactly the rays of the
+straightforward formulation, so its bitmap is bit-identical, near the origin, far from it, with background pixels
+and in small chunks."""
+import numpy as np
+import pytest
+
+from methods.visibility_bitmap import bitmap as bm
+from methods.visibility_bitmap.method import visibility_pass
+from suite.shading import SHADOW_TMAX_SCALE, point_light_visibility
+from suite.trace.robust import offset_ray_origin
+
+
+def straightforward_visibility(g, lights, tracer):
+    """The specification: per pixel and light, the offset origin, the unit direction and the distance to the
+    light in float64 over (P, L, 3) arrays, the horizon test, one occluded query."""
+    h, w = g.depth.shape
+    vis = np.zeros((h * w, len(lights)), bool)
+    idx = np.nonzero(g.valid.reshape(-1))[0]
+    if len(lights) == 0 or len(idx) == 0:
+        return vis.reshape(h, w, len(lights))
+    ng = g.geo_normal.reshape(-1, 3)[idx].astype(np.float64)
+    origin = offset_ray_origin(g.position.reshape(-1, 3)[idx], ng, getattr(tracer, "shift", None))
+    light_pos = np.stack([lt.position for lt in lights]).astype(np.float64)
+    to_light = light_pos[None, :, :] - origin[:, None, :]
+    dist = np.linalg.norm(to_light, axis=-1)
+    d = to_light / np.maximum(dist, 1e-30)[..., None]
+    above = np.einsum("plc,pc->pl", d, ng) > 0
+    sel = above.reshape(-1)
+    o = np.broadcast_to(origin[:, None, :], d.shape).reshape(-1, 3)[sel]
+    occ = tracer.occluded(o, d.reshape(-1, 3)[sel].astype(np.float32), 0.0,
+                          (dist.reshape(-1)[sel] * SHADOW_TMAX_SCALE).astype(np.float32))
+    flat = np.zeros(above.size, bool)
+    flat[sel] = ~occ
+    vis[idx] = flat.reshape(above.shape)
+    return vis.reshape(h, w, len(lights))
+
+
+def _scene_and_tracer(name, shift=None):
+    from suite.scene import load
+    from suite.trace import make
+
+    scene = load(name)
+    if shift is not None:
+        scene = scene.translated(shift)
+    return scene, make("embree", scene)
+
+
+@pytest.mark.parametrize("name, shift", [("living_room", None), ("living_room", (1e4, 1e4, 1e4)),
+                                         ("atrium", None), ("arena", None)])
+def test01_core_kernel_is_bit_identical_to_the_straightforward_formulation(name, shift):
+    from suite.gbuffer import render_gbuffer
+
+    scene, tracer = _scene_and_tracer(name, shift)
+    for t_s in (0.0, 0.9):
+        g = render_gbuffer(scene, tracer, t_s, resolution=(64, 36))
+        lights = scene.lights_at(t_s)
+        expected = straightforward_visibility(g, lights, tracer)
+        assert expected.any() and not expected.all()
+        assert np.array_equal(point_light_visibility(g, lights, tracer), expected)
+        # chunks smaller than a row, and a chunk boundary inside the valid pixels
+        assert np.array_equal(point_light_visibility(g, lights, tracer, chunk_rays=50), expected)
+
+
+def test02_background_pixels_get_no_ray_and_no_bit():
+    from suite.gbuffer import render_gbuffer
+
+    scene, tracer = _scene_and_tracer("atrium")
+    g = render_gbuffer(scene, tracer, 0.0, resolution=(64, 36))
+    assert not g.valid.all()  # the atrium's open sky
+    before = tracer.counters["rays_occluded"]
+    vis = point_light_visibility(g, scene.lights_at(0.0), tracer)
+    assert not vis[~g.valid].any()
+    assert tracer.counters["rays_occluded"] - before <= int(g.valid.sum()) * len(scene.lights_at(0.0))
+
+
+def test03_visibility_pass_packs_what_it_traced():
+    from suite.gbuffer import render_gbuffer
+
+    scene, tracer = _scene_and_tracer("living_room")
+    g = render_gbuffer(scene, tracer, 0.0, resolution=(32, 18))
+    lights = scene.lights_at(0.0)
+    visibility, raw = visibility_pass(g, lights, tracer, "paper32")
+    assert raw.nbytes == bm.bitmap_nbytes(32, 18, len(lights), "paper32")
+    assert np.array_equal(bm.unpack(raw, 32, len(lights), "paper32"), visibility)
+
+
+def test04_column_offset_matches_offset_ray_origin_bit_for_bit_across_magnitudes():
+    from suite.shading import _offset_origins
+
+    rng = np.random.default_rng(0)
+    scales = np.array([0.0, 1e-30, 1e-8, 1e-3, 0.5, 1.0, 2.0, 3.0, 1e4, 1e7])
+    p = (rng.standard_normal((len(scales) * 50, 3)) * np.repeat(scales, 50)[:, None])
+    p[:3] = [[0.0, 0.0, 0.0], [2.0, -4.0, 1.0], [-0.0, 1e-40, 0.0]]  # zero, powers of two, a subnormal
+    n = rng.standard_normal(p.shape)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    for shift in (None, np.array([1e4, -3.0, 0.25])):
+        expected = offset_ray_origin(p, n, shift)
+        got = _offset_origins(np.ascontiguousarray(p.T), np.ascontiguousarray(n.T), shift)
+        assert np.array_equal(got.view(np.uint64), expected.view(np.uint64))
