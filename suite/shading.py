@@ -28,34 +28,6 @@ def min_light_distance(scene) -> float:
     return 1e-4 * max(scene.extent, 1e-6)
 
 
-# Exponent bits of a float32: with a zero mantissa they are 2**exponent.
-_F32_EXPONENT_BITS = np.uint32(0x7F800000)
-
-
-def _offset_origins(p: np.ndarray, ng: np.ndarray, frame_shift) -> np.ndarray:
-    """``offset_ray_origin`` for ``(3, P)`` float64 columns of points and geometric normals, returning ``(P, 3)``.
-
-    The same float64/float32 operations in the same order, so the same bits, without numpy's slow broadcasts over
-    a length-3 inner axis. np.spacing of a positive normal float32 is 2**(exponent - 23): its exponent bits with
-    a zero mantissa, times 2**-23 (exact); where the two differ (zero, subnormals) the FLOAT_SCALE floor wins.
-    """
-    from suite.trace.robust import FLOAT_SCALE, OFFSET_ULPS
-
-    local = [p[c] - frame_shift[c] for c in range(3)] if frame_shift is not None else [p[c] for c in range(3)]
-    magnitude = np.abs(local[0])
-    np.maximum(magnitude, np.abs(local[1]), out=magnitude)
-    np.maximum(magnitude, np.abs(local[2]), out=magnitude)
-    step = (magnitude.astype(np.float32).view(np.uint32) & _F32_EXPONENT_BITS).view(np.float32).astype(np.float64)
-    step *= 2.0 ** -23
-    step *= OFFSET_ULPS
-    np.maximum(step, FLOAT_SCALE, out=step)
-    origin = np.empty((p.shape[1], 3), np.float64)
-    for c in range(3):
-        np.multiply(step, ng[c], out=magnitude)
-        np.add(p[c], magnitude, out=origin[:, c])
-    return origin
-
-
 def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.ndarray:
     """(H, W, L) bool: True where light l is unobstructed from the G-buffer position (one shadow ray each).
 
@@ -64,69 +36,32 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
     saves work and makes the bit independent of how a ray grazing the surface's own triangle is resolved.
 
     Rays start at ``offset_ray_origin`` of the position (float64), point at the light (float64 direction rounded
-    to float32) and stop ``SHADOW_TMAX_SCALE`` short of it. The arithmetic runs light by light on contiguous
-    per-pixel columns with reused buffers (at most ``chunk_rays`` pixels at a time), which gives the same bits as
-    the (P, L, 3) formulation at a fraction of its cost; ``splitbench bench visibility_bitmap`` compares the pass
-    with the backend's raw tracing of the same rays.
+    to float32) and stop ``SHADOW_TMAX_SCALE`` short of it. A compiled kernel (:mod:`suite.trace.raygen`) writes
+    them straight into the tracer's frame, light by light, at most ``chunk_rays`` pixels at a time.
     """
+    from suite.trace.raygen import ShadowRays
+
     h, w = g.depth.shape
     n_lights = len(lights)
     vis = np.zeros((n_lights, h * w), bool)  # light-major: each light's bits are one contiguous row
     idx_all = np.flatnonzero(g.valid.reshape(-1))
     if n_lights == 0 or len(idx_all) == 0:
         return np.zeros((h, w, n_lights), bool)
-    frame_shift = getattr(tracer, "shift", None)
-    light_pos = np.stack([lt.position for lt in lights]).astype(np.float64)
-    positions = g.position.reshape(-1, 3)
-    normals = g.geo_normal.reshape(-1, 3)
-    every_pixel = len(idx_all) == h * w
+    positions = np.ascontiguousarray(g.position.reshape(-1, 3), np.float64)
+    normals = np.ascontiguousarray(g.geo_normal.reshape(-1, 3), np.float64)
+    shift = getattr(tracer, "shift", None)
+    soa = bool(getattr(tracer, "soa_origins", False))
     chunk = max(int(chunk_rays), 1)
     for c0 in range(0, len(idx_all), chunk):
-        idx = idx_all[c0:c0 + chunk]
-        rows = slice(c0, c0 + chunk) if every_pixel else idx
-        p = np.ascontiguousarray(positions[rows].T, np.float64)  # (3, P)
-        ng = np.ascontiguousarray(normals[rows].T, np.float64)
-        origin = _offset_origins(p, ng, frame_shift)  # (P, 3) world, float64
-        oc = np.ascontiguousarray(origin.T)
-        n_pix = len(idx)
-        to_light = np.empty((3, n_pix))
-        dist, a, b = np.empty(n_pix), np.empty(n_pix), np.empty(n_pix)
-        above = np.empty(n_pix, bool)
-        d_all = np.empty((n_pix, 3), np.float32)
-        # Rows as single opaque items: selecting rows of a (P, 3) array is then one memcpy each.
-        origin_rows = origin.view(np.dtype((np.void, origin.itemsize * 3))).reshape(-1)
-        d_rows = d_all.view(np.dtype((np.void, d_all.itemsize * 3))).reshape(-1)
-        for li in range(n_lights):
-            for c in range(3):
-                np.subtract(light_pos[li, c], oc[c], out=to_light[c])
-            # |to_light| summed as x² + (y² + z²): np.linalg.norm's order over a length-3 axis.
-            np.multiply(to_light[1], to_light[1], out=a)
-            np.multiply(to_light[2], to_light[2], out=b)
-            np.add(a, b, out=a)
-            np.multiply(to_light[0], to_light[0], out=b)
-            np.add(b, a, out=dist)
-            np.sqrt(dist, out=dist)
-            np.maximum(dist, 1e-30, out=a)
-            np.divide(to_light, a, out=to_light)  # unit direction
-            np.multiply(to_light[0], ng[0], out=a)
-            np.multiply(to_light[1], ng[1], out=b)
-            np.add(a, b, out=a)
-            np.multiply(to_light[2], ng[2], out=b)
-            np.add(a, b, out=a)
-            np.greater(a, 0.0, out=above)
-            np.multiply(dist, SHADOW_TMAX_SCALE, out=dist)
-            d_all[:] = to_light.T
-            if above.all():  # no compaction needed
-                lit = ~tracer.occluded(origin, d_all, 0.0, dist.astype(np.float32))
-                vis[li, slice(c0, c0 + chunk) if every_pixel else idx] = lit
-                continue
-            o = origin_rows[above].view(np.float64).reshape(-1, 3)
-            d = d_rows[above].view(np.float32).reshape(-1, 3)
-            lit = ~tracer.occluded(o, d, 0.0, dist[above].astype(np.float32))
-            if every_pixel:
-                vis[li, c0:c0 + chunk][above] = lit
-            else:
-                vis[li, idx[above]] = lit
+        rays = ShadowRays(positions, normals, idx_all[c0:c0 + chunk], shift, soa)
+        for li, light in enumerate(lights):
+            o, d, length, pixel = rays.toward(light.position, SHADOW_TMAX_SCALE)
+            if hasattr(tracer, "occluded_local"):
+                lit = ~tracer.occluded_local(o, d, length)
+            else:  # a tracer outside the suite's hierarchy: world-space rays through the public query
+                o_world = (o.T if soa else o).astype(np.float64) + (0.0 if shift is None else shift)
+                lit = ~tracer.occluded(o_world, d, 0.0, length)
+            vis[li, pixel] = lit
     return np.ascontiguousarray(vis.T).reshape(h, w, n_lights)
 
 

@@ -138,19 +138,25 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
 # ------------------------------------------------------------------------------------------------ throughput
 
 class _RecordingTracer:
-    """Forwards ``occluded`` to a tracer and keeps the exact arrays the backend received (after the suite's
-    argument handling), so the raw backend can be timed on the same rays."""
+    """Forwards shadow-ray queries to a tracer and keeps the exact rays the backend received (in its frame, as
+    (N, 3) arrays: the raw entry points' layout), so the raw backend can be timed on the same rays."""
 
     def __init__(self, tracer):
         self.tracer = tracer
         self.shift = getattr(tracer, "shift", None)
+        self.soa_origins = getattr(tracer, "soa_origins", False)
         self.counters = tracer.counters
         self.rays: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def occluded_local(self, o, d, length):
+        o_rows = np.ascontiguousarray(o.T if self.soa_origins else o)
+        self.rays.append((o_rows, d.copy(), length.copy()))  # the caller reuses its buffers
+        return self.tracer.occluded_local(o, d, length)
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf):
         from suite.trace.base import as_rays
 
-        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, getattr(self.tracer, "soa_origins", False))
+        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift)
         self.rays.append((o.copy(), d.copy(), length.copy()))  # the caller may reuse its buffers
         return self.tracer.occluded(origins, dirs, tmin, tmax)
 

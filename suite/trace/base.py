@@ -120,6 +120,19 @@ class Tracer:
             return np.zeros(0, bool)
         return self._occluded(o, d, length)
 
+    def occluded_local(self, o, d, length) -> np.ndarray:
+        """``occluded`` for rays already in the tracing frame: float32 origins minus ``shift`` (shape (3, N) if
+        ``soa_origins`` else (N, 3)), unit float32 directions (N, 3), lengths in [0, MAX_RAY_LENGTH].
+
+        For ray generators that write rays in the backend's frame and layout directly
+        (:mod:`suite.trace.raygen`); everything else should call :meth:`occluded`.
+        """
+        n = len(d)
+        self.counters["rays_occluded"] += n
+        if n == 0:
+            return np.zeros(0, bool)
+        return self._occluded(o, d, length)
+
     def update(self, t_s: float) -> None:
         """Moves animated objects to their pose at ``t_s`` (no-op for static scenes)."""
         if not self.scene.object_animations or t_s == self._time_s:

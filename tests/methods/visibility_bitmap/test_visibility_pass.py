@@ -84,16 +84,37 @@ def test03_visibility_pass_packs_what_it_traced():
     assert np.array_equal(bm.unpack(raw, 32, len(lights), "paper32"), visibility)
 
 
-def test04_column_offset_matches_offset_ray_origin_bit_for_bit_across_magnitudes():
-    from suite.shading import _offset_origins
+def test04_compiled_ray_origins_match_offset_ray_origin_bit_for_bit_across_magnitudes():
+    from suite.trace.raygen import ShadowRays
 
     rng = np.random.default_rng(0)
     scales = np.array([0.0, 1e-30, 1e-8, 1e-3, 0.5, 1.0, 2.0, 3.0, 1e4, 1e7])
     p = (rng.standard_normal((len(scales) * 50, 3)) * np.repeat(scales, 50)[:, None])
     p[:3] = [[0.0, 0.0, 0.0], [2.0, -4.0, 1.0], [-0.0, 1e-40, 0.0]]  # zero, powers of two, a subnormal
-    n = rng.standard_normal(p.shape)
+    n = np.tile([0.0, 1.0, 0.0], (len(p), 1))
+    n[::2] = rng.standard_normal((len(p[::2]), 3))
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[:, 1] = np.abs(n[:, 1]) + 0.1  # every point faces the light above
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    light = np.array([0.0, 1e9, 0.0])
+    pixels = np.arange(len(p), dtype=np.int64)
     for shift in (None, np.array([1e4, -3.0, 0.25])):
-        expected = offset_ray_origin(p, n, shift)
-        got = _offset_origins(np.ascontiguousarray(p.T), np.ascontiguousarray(n.T), shift)
-        assert np.array_equal(got.view(np.uint64), expected.view(np.uint64))
+        for soa in (False, True):
+            o, d, length, pixel = ShadowRays(p, n, pixels, shift, soa).toward(light, 1.0)
+            assert len(d) == len(p) and np.array_equal(pixel, pixels)
+            expected = offset_ray_origin(p, n, shift) - (0.0 if shift is None else shift)
+            assert np.array_equal(o.T if soa else o, expected.astype(np.float32))
+
+
+@pytest.mark.parametrize("n_pixels", [1, 3, 5])
+def test05_tiny_pixel_sets_give_the_same_rays_in_both_layouts(n_pixels):
+    """Layouts are chosen by flag, never guessed from array shapes (3 pixels look like a (3, N) array)."""
+    from suite.trace.raygen import ShadowRays
+
+    p = np.arange(3 * n_pixels, dtype=np.float64).reshape(n_pixels, 3)
+    n = np.tile([0.0, 1.0, 0.0], (n_pixels, 1))
+    pixels = np.arange(n_pixels)
+    aos = ShadowRays(p, n, pixels, None, soa=False).toward([0.0, 100.0, 0.0], 1.0)
+    soa = ShadowRays(p, n, pixels, None, soa=True).toward([0.0, 100.0, 0.0], 1.0)
+    assert np.array_equal(aos[0], soa[0].T) and np.array_equal(aos[1], soa[1])
+    np.testing.assert_allclose(aos[0], p, rtol=1e-6, atol=1e-6)

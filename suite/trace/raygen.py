@@ -1,0 +1,109 @@
+"""Compiled shadow-ray generation (numba).
+
+Generating a shadow ray is a handful of float operations per pixel and light; in numpy each of them is a pass
+over memory, and ray generation cost more than Embree's tracing of the rays. Two compiled loops write the rays
+straight into the tracer's frame and layout: one offsets the origins once per pixel (they do not depend on the
+light), one makes each light's rays. Per ray they perform exactly the float64/float32 operations of the
+reference formulation (``suite.trace.robust.offset_ray_origin``, a float64 direction rounded to float32,
+``dist * tmax_scale``), in the same order, so rays and visibility bits are identical to it
+(tests/methods/visibility_bitmap/test_visibility_pass.py).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from suite.trace.robust import FLOAT_SCALE, OFFSET_ULPS
+
+
+def _origins_kernel(positions, normals, pixels, shift, offset_ulps, float_scale, origin64, origin_local, soa):
+    """``offset_ray_origin`` of ``positions[pixels]`` (float64, world) and the same in the tracing frame
+    (float32, minus ``shift``; ``origin_local`` is (3, P) or (P, 3))."""
+    # np.spacing(np.float32(m)) of a normal float32 is its exponent bits with a zero mantissa times 2**-23;
+    # below the normal range it is 0 here, and the absolute floor wins anyway.
+    m32 = np.empty(1, np.float32)
+    m_bits = m32.view(np.uint32)
+    e32 = np.empty(1, np.float32)
+    e_bits = e32.view(np.uint32)
+    for j in range(pixels.shape[0]):
+        i = pixels[j]
+        px, py, pz = positions[i, 0], positions[i, 1], positions[i, 2]
+        m32[0] = max(abs(px - shift[0]), abs(py - shift[1]), abs(pz - shift[2]))
+        e_bits[0] = m_bits[0] & np.uint32(0x7F800000)
+        step = max(offset_ulps * (np.float64(e32[0]) * 1.1920928955078125e-07), float_scale)  # 2**-23
+        ox = px + step * normals[i, 0]
+        oy = py + step * normals[i, 1]
+        oz = pz + step * normals[i, 2]
+        origin64[j, 0], origin64[j, 1], origin64[j, 2] = ox, oy, oz
+        if soa:
+            origin_local[0, j], origin_local[1, j], origin_local[2, j] = ox - shift[0], oy - shift[1], oz - shift[2]
+        else:
+            origin_local[j, 0], origin_local[j, 1], origin_local[j, 2] = ox - shift[0], oy - shift[1], oz - shift[2]
+
+
+def _rays_kernel(normals, pixels, origin64, origin_local, light, tmax_scale, o_out, d_out, len_out, ray_pixel, soa):
+    """Rays from the offset origins to ``light``, compacted to the pixels whose horizon the light is above.
+    Returns the ray count; ``ray_pixel[k]`` is the pixel (an entry of ``pixels``) of ray k."""
+    k = 0
+    for j in range(pixels.shape[0]):
+        i = pixels[j]
+        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        tx, ty, tz = light[0] - origin64[j, 0], light[1] - origin64[j, 1], light[2] - origin64[j, 2]
+        dist = math.sqrt(tx * tx + (ty * ty + tz * tz))  # np.linalg.norm's order over a length-3 axis
+        inv = max(dist, 1e-30)
+        dx, dy, dz = tx / inv, ty / inv, tz / inv
+        if dx * nx + dy * ny + dz * nz <= 0.0:  # below the horizon: shadowed by the surface itself, no ray
+            continue
+        if soa:
+            o_out[0, k], o_out[1, k], o_out[2, k] = origin_local[0, j], origin_local[1, j], origin_local[2, j]
+        else:
+            o_out[k, 0], o_out[k, 1], o_out[k, 2] = origin_local[j, 0], origin_local[j, 1], origin_local[j, 2]
+        d_out[k, 0], d_out[k, 1], d_out[k, 2] = dx, dy, dz
+        len_out[k] = max(np.float32(dist * tmax_scale), np.float32(0.0))
+        ray_pixel[k] = i
+        k += 1
+    return k
+
+
+_compiled = None
+
+
+def _jit():
+    global _compiled
+    if _compiled is None:
+        import numba
+
+        # error_model='numpy': IEEE division (divisors are never 0) without per-division checks.
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+        _compiled = jit(_origins_kernel), jit(_rays_kernel)
+    return _compiled
+
+
+class ShadowRays:
+    """Shadow rays from a set of G-buffer pixels, light after light, in a tracer's frame and layout."""
+
+    def __init__(self, positions, normals, pixels, shift=None, soa: bool = False):
+        origins, _ = _jit()
+        n = len(pixels)
+        self.soa = soa
+        self.positions, self.normals = positions, normals
+        self.pixels = np.ascontiguousarray(pixels, np.int64)
+        self.origin64 = np.empty((n, 3), np.float64)
+        self.origin_local = np.empty((3, n) if soa else (n, 3), np.float32)
+        shift = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
+        origins(positions, normals, self.pixels, shift, float(OFFSET_ULPS), float(FLOAT_SCALE), self.origin64,
+                self.origin_local, soa)
+        self.o = np.empty((3, n) if soa else (n, 3), np.float32)
+        self.d = np.empty((n, 3), np.float32)
+        self.length = np.empty(n, np.float32)
+        self.ray_pixel = np.empty(n, np.int64)
+
+    def toward(self, light_position, tmax_scale: float):
+        """(o, d, length, pixel) of the rays toward one light; views into reused buffers."""
+        _, rays = _jit()
+        count = int(rays(self.normals, self.pixels, self.origin64, self.origin_local,
+                         np.asarray(light_position, np.float64), float(tmax_scale), self.o, self.d, self.length,
+                         self.ray_pixel, self.soa))
+        o = self.o[:, :count] if self.soa else self.o[:count]
+        return o, self.d[:count], self.length[:count], self.ray_pixel[:count]
