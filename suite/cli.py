@@ -42,16 +42,24 @@ def _print_json(obj) -> None:
     print(json.dumps(_jsonable(obj), indent=2, sort_keys=True))
 
 
-def _parse_sets(items) -> dict:
+def _parse_set_grid(items) -> dict[str, list]:
+    """``--set key=value`` items as {key: [values...]}: a key given more than once spans a grid."""
     from suite.registry import parse_set_value
 
-    values = {}
+    values: dict[str, list] = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise UserError(f"malformed --set '{item}' (expected key=value)")
-        values[key.strip()] = parse_set_value(value.strip())
+        grid = values.setdefault(key.strip(), [])
+        parsed = parse_set_value(value.strip())
+        if parsed not in grid:
+            grid.append(parsed)
     return values
+
+
+def _parse_sets(items) -> dict:
+    return {key: vals[-1] for key, vals in _parse_set_grid(items).items()}
 
 
 # ---------------------------------------------------------------------------------------------------- list
@@ -106,22 +114,42 @@ def _safe(fn) -> dict:
 # ----------------------------------------------------------------------------------------------------- run
 
 def cmd_run(args) -> int:
-    from suite import runner
+    """One run, or a grid of runs when ``--set KEY=...`` repeats a key or ``--net``/``--protocol`` repeat; a grid
+    goes through the executor (serial, local processes or Dask)."""
+    import itertools
+
+    from suite import executor, runner
 
     options = {}
     if args.reference_spp is not None:
         options["reference_spp"] = args.reference_spp
     if args.clock is not None:
         options["clock"] = args.clock
-    cfg = runner.make_config(args.method, scene=args.scene, backend=args.backend, resolution=args.resolution,
-                             frames=args.frames, net=args.net, protocol=args.protocol,
-                             set_values=_parse_sets(args.set), seed=args.seed, **options)
+    set_grid = _parse_set_grid(args.set)
+    nets = list(dict.fromkeys(args.net or ["ideal"]))
+    protocols = list(dict.fromkeys(args.protocol or ["tcp"]))
+    keys = list(set_grid)
+    configs = []
+    for net, protocol, *values in itertools.product(nets, protocols, *(set_grid[k] for k in keys)):
+        configs.append(runner.make_config(args.method, scene=args.scene, backend=args.backend,
+                                          resolution=args.resolution, frames=args.frames, net=net,
+                                          protocol=protocol, set_values=dict(zip(keys, values)), seed=args.seed,
+                                          **options))
     out_dir = _check_writable_dir(args.out)
-    out = runner.execute(cfg, out_dir)
-    if args.json:
-        _print_json(out)
+    if len(configs) == 1:
+        outs = [runner.execute(configs[0], out_dir)]
     else:
-        print(format_summary(out))
+        with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
+            outcomes = executor.sweep(configs, out_dir, ex, desc=f"{args.method} grid")
+        failed = [o for o in outcomes if o["error"]]
+        if failed:
+            raise UserError(f"{len(failed)} of {len(configs)} runs failed; first: {failed[0]['error']}")
+        outs = [{"run_dir": o["run_dir"], "skipped": o["skipped"],
+                 "summary": json.loads((Path(o["run_dir"]) / "summary.json").read_text())} for o in outcomes]
+    if args.json:
+        _print_json(outs[0] if len(outs) == 1 else outs)
+    else:
+        print("\n\n".join(format_summary(out) for out in outs))
     return 0
 
 
@@ -333,8 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--backend", default="embree")
     s.add_argument("--resolution", default="160x90", help="WxH")
     s.add_argument("--frames", default=3, type=_int_arg("--frames"))
-    s.add_argument("--net", default="ideal", help="netsim profile or inline spec; 'ideal' = zero-latency")
-    s.add_argument("--protocol", default="tcp", choices=("tcp", "udp"))
+    s.add_argument("--net", action="append", default=None,
+                   help="netsim profile or inline spec; 'ideal' = zero-latency (repeat for a grid)")
+    s.add_argument("--protocol", action="append", default=None, choices=("tcp", "udp"), help="(repeat for a grid)")
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="method parameter (repeatable); "
                    "variant=paper|<name> picks a variant")
     s.add_argument("--seed", default=0, type=_int_arg("--seed"))
@@ -343,6 +372,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="spp of the path-traced reference (0 = no reference metrics; default 32)")
     s.add_argument("--clock", choices=("measured", "work"), default=None,
                    help="stage durations: measured wall time (default) or the work model")
+    s.add_argument("--executor", default="serial", choices=EXECUTORS, help="for grids: serial, processes or dask")
+    s.add_argument("--scheduler", default=None, help="for grids: Dask scheduler address tcp://host:port")
+    s.add_argument("--workers", default=2, type=_int_arg("--workers"))
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_run)
 

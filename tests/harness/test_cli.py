@@ -35,6 +35,18 @@ def test02_run_json_is_machine_readable(fake_core, tmp_path, capsys):
     assert code == 0 and doc["summary"]["bytes_down"] == 200 and Path(doc["run_dir"]).is_dir()
 
 
+def test02b_run_over_a_grid_makes_one_run_per_combination(fake_core, tmp_path, capsys):
+    """A repeated --set key and a repeated --net span a grid, run through the executor."""
+    code, out, err = _run(capsys, "run", "synthetic_sync", "--scene", "toy", "--backend", "fake", "--resolution",
+                          "16x8", "--frames", "2", "--set", "payload_bytes=100", "--set", "payload_bytes=300",
+                          "--net", "ideal", "--net", "bw=8mbps,delay=5ms", "--out", str(tmp_path), "--json")
+    assert code == 0, err
+    docs = json.loads(out)
+    assert len(docs) == 4 and len(results.complete_runs(tmp_path)) == 4
+    assert sorted(d["summary"]["bytes_down"] for d in docs) == [200, 200, 600, 600]
+    assert sorted({d["summary"]["net"] for d in docs}) == ["bw=8mbps,delay=5ms", "ideal"]
+
+
 @pytest.mark.parametrize("args, needle", [
     (["run", "teleport"], "unknown method 'teleport'"),
     (["run", "synthetic_sync", "--scene", "atlantis"], "unknown scene 'atlantis'"),
