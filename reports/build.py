@@ -8,7 +8,8 @@ frame; speed vs error across all runs; machine and versions. Extensions:
   a section that also takes the keywords ``out_dir`` (the report directory, for its own plots and CSVs, which
   it links relative to index.html) and/or ``results_root`` (to read stored documents beside the runs, such as
   benchmark output) gets them too;
-* every CSV under ``netsim/validation/`` (and any directory listed in ``EXTRA_TABLE_DIRS``) is included as a table.
+* netsim's committed validation against ns-3 (``netsim/validation/validation.csv``), summarised per transport;
+* every CSV under a directory listed in ``EXTRA_TABLE_DIRS`` is included as a table.
 """
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ import pandas as pd
 from suite import registry, results
 
 REPO_DIR = Path(__file__).resolve().parent.parent
-EXTRA_TABLE_DIRS = [REPO_DIR / "netsim" / "validation"]
+EXTRA_TABLE_DIRS: list[Path] = []
+NETSIM_VALIDATION_CSV = REPO_DIR / "netsim" / "validation" / "validation.csv"
 RUN_COLUMNS = ["run", "method", "variant", "mode", "scene", "resolution", "net", "protocol", "frames"]
 
 
@@ -192,6 +194,37 @@ def extra_tables() -> list[tuple[str, pd.DataFrame]]:
     return tables
 
 
+def netsim_validation_summary(table: pd.DataFrame) -> pd.DataFrame:
+    """Median and p90 relative completion-time error of netsim against ns-3, per transport, overall and split
+    into loss-free and lossy grid points (issue goals: median <= 10 %, p90 <= 25 %, loss-free <= 5 %)."""
+    rows = []
+    for transport, group in table.groupby("transport"):
+        row = {"transport": transport, "cases": len(group)}
+        for label, part in (("", group), ("loss-free ", group[group["loss"] == 0]), ("lossy ", group[group["loss"] > 0])):
+            err = 100.0 * part["rel_error"]
+            row[f"{label}median %"] = float(err.median()) if len(err) else np.nan
+            row[f"{label}p90 %"] = float(err.quantile(0.9)) if len(err) else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def netsim_validation_section(out: Path, csv: Path = None) -> str:
+    """The committed netsim-vs-ns-3 validation table (netsim/validation/), summarised; empty if absent."""
+    csv = Path(csv or NETSIM_VALIDATION_CSV)
+    try:
+        table = pd.read_csv(csv)
+        summary = netsim_validation_summary(table)
+    except (OSError, KeyError, pd.errors.ParserError, pd.errors.EmptyDataError):
+        return ""
+    table.to_csv(out / "netsim_validation.csv", index=False)
+    worst = table.sort_values("rel_error", ascending=False).head(8)
+    return ("<h2>Network model: netsim against ns-3</h2><p>Completion time of the same transfers in netsim and in "
+            "ns-3 (sizes 1 kB–8 MB, 10 Mbit/s–1 Gbit/s, RTT 2–100 ms, loss 0–2 %), relative error per transport. "
+            "Produced by <code>splitbench netsim validate</code>; modelling differences are in docs/netsim.md. "
+            f"<a href='netsim_validation.csv'>all {len(table)} points</a></p>" + _table_html(summary)
+            + "<p>Largest errors:</p>" + _table_html(worst))
+
+
 def _table_html(df: pd.DataFrame) -> str:
     return df.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="–", border=0, classes="t")
 
@@ -248,6 +281,7 @@ def build(results_root, out_dir) -> Path:
         machines.to_csv(out / "machines.csv", index=False)
         body.append("<h2>Machine and versions</h2><p><a href='machines.csv'>machines.csv</a></p>"
                     + _table_html(machines))
+    body.append(netsim_validation_section(out))
     for name, df in extra_tables():
         body.append(f"<h2>Table: {html.escape(name)}</h2>" + _table_html(df))
     index = out / "index.html"

@@ -83,3 +83,18 @@ def test05_breakdown_parts_sum_to_the_frame_time(fake_config, tmp_path):
     parts = table.drop(columns=["frame_ms"]).sum(axis=1)
     assert parts.to_numpy() == pytest.approx(table["frame_ms"].to_numpy())
     assert "cp_net_frame_ms" in table.columns
+
+
+def test_netsim_validation_is_summarised_per_transport(tmp_path):
+    from reports import build as report
+    csv = tmp_path / "validation.csv"
+    csv.write_text("transport,size_bytes,bandwidth_mbps,rtt_ms,loss,rel_error\n"
+                   "udp,1000,10,2,0.0,0.01\nudp,1000,10,2,0.01,0.03\n"
+                   "tcp-cubic,1000,10,2,0.0,0.02\ntcp-cubic,1000,10,2,0.02,0.20\n")
+    summary = report.netsim_validation_summary(pd.read_csv(csv)).set_index("transport")
+    assert summary.loc["udp", "loss-free median %"] == pytest.approx(1.0)
+    assert summary.loc["tcp-cubic", "lossy median %"] == pytest.approx(20.0)
+    assert summary.loc["tcp-cubic", "median %"] == pytest.approx(11.0)
+    html = report.netsim_validation_section(tmp_path, csv)
+    assert "netsim against ns-3" in html and (tmp_path / "netsim_validation.csv").exists()
+    assert report.netsim_validation_section(tmp_path, tmp_path / "missing.csv") == ""
