@@ -86,7 +86,6 @@ def test05_breakdown_parts_sum_to_the_frame_time(fake_config, tmp_path):
 
 
 def test_netsim_validation_is_summarised_per_transport(tmp_path):
-    from reports import build as report
     csv = tmp_path / "validation.csv"
     csv.write_text("transport,size_bytes,bandwidth_mbps,rtt_ms,loss,rel_error\n"
                    "udp,1000,10,2,0.0,0.01\nudp,1000,10,2,0.01,0.03\n"
