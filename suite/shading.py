@@ -13,6 +13,8 @@ its noise (see tests/core/test_direct_lighting.py).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from suite.trace.robust import offset_ray_origin
@@ -37,7 +39,8 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
 
     Rays start at ``offset_ray_origin`` of the position (float64), point at the light (float64 direction rounded
     to float32) and stop ``SHADOW_TMAX_SCALE`` short of it. A compiled kernel (:mod:`suite.trace.raygen`) writes
-    them straight into the tracer's frame, light by light, at most ``chunk_rays`` pixels at a time.
+    them straight into the tracer's frame, light by light, at most ``chunk_rays`` pixels at a time; the next
+    light's rays are generated while the backend traces the current light's.
     """
     from suite.trace.raygen import ShadowRays
 
@@ -52,16 +55,25 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
     shift = getattr(tracer, "shift", None)
     soa = bool(getattr(tracer, "soa_origins", False))
     chunk = max(int(chunk_rays), 1)
-    for c0 in range(0, len(idx_all), chunk):
-        rays = ShadowRays(positions, normals, idx_all[c0:c0 + chunk], shift, soa)
-        for li, light in enumerate(lights):
-            o, d, length, pixel = rays.toward(light.position, SHADOW_TMAX_SCALE)
-            if hasattr(tracer, "occluded_local"):
-                lit = ~tracer.occluded_local(o, d, length)
-            else:  # a tracer outside the suite's hierarchy: world-space rays through the public query
-                o_world = (o.T if soa else o).astype(np.float64) + (0.0 if shift is None else shift)
-                lit = ~tracer.occluded(o_world, d, 0.0, length)
-            vis[li, pixel] = lit
+
+    def trace(o, d, length):
+        if hasattr(tracer, "occluded_local"):
+            return tracer.occluded_local(o, d, length)
+        # a tracer outside the suite's hierarchy: world-space rays through the public query
+        o_world = (o.T if soa else o).astype(np.float64) + (0.0 if shift is None else shift)
+        return tracer.occluded(o_world, d, 0.0, length)
+
+    # Pipelined: a worker thread generates light l+1's rays (compiled, GIL released) while the backend traces
+    # light l's. Two buffer slots alternate; the order of the results does not depend on the timing.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for c0 in range(0, len(idx_all), chunk):
+            rays = ShadowRays(positions, normals, idx_all[c0:c0 + chunk], shift, soa, slots=2)
+            pending = pool.submit(rays.toward, lights[0].position, SHADOW_TMAX_SCALE, 0)
+            for li in range(n_lights):
+                o, d, length, pixel = pending.result()
+                if li + 1 < n_lights:
+                    pending = pool.submit(rays.toward, lights[li + 1].position, SHADOW_TMAX_SCALE, (li + 1) % 2)
+                vis[li, pixel] = ~trace(o, d, length)
     return np.ascontiguousarray(vis.T).reshape(h, w, n_lights)
 
 

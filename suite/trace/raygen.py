@@ -81,9 +81,13 @@ def _jit():
 
 
 class ShadowRays:
-    """Shadow rays from a set of G-buffer pixels, light after light, in a tracer's frame and layout."""
+    """Shadow rays from a set of G-buffer pixels, light after light, in a tracer's frame and layout.
 
-    def __init__(self, positions, normals, pixels, shift=None, soa: bool = False):
+    ``slots`` output buffers let the rays of the next light be generated (in another thread; the kernels
+    release the GIL) while the backend traces the current light's.
+    """
+
+    def __init__(self, positions, normals, pixels, shift=None, soa: bool = False, slots: int = 1):
         origins, _ = _jit()
         n = len(pixels)
         self.soa = soa
@@ -94,16 +98,13 @@ class ShadowRays:
         shift = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
         origins(positions, normals, self.pixels, shift, float(OFFSET_ULPS), float(FLOAT_SCALE), self.origin64,
                 self.origin_local, soa)
-        self.o = np.empty((3, n) if soa else (n, 3), np.float32)
-        self.d = np.empty((n, 3), np.float32)
-        self.length = np.empty(n, np.float32)
-        self.ray_pixel = np.empty(n, np.int64)
+        self.buffers = [(np.empty((3, n) if soa else (n, 3), np.float32), np.empty((n, 3), np.float32),
+                         np.empty(n, np.float32), np.empty(n, np.int64)) for _ in range(max(int(slots), 1))]
 
-    def toward(self, light_position, tmax_scale: float):
-        """(o, d, length, pixel) of the rays toward one light; views into reused buffers."""
+    def toward(self, light_position, tmax_scale: float, slot: int = 0):
+        """(o, d, length, pixel) of the rays toward one light; views into the reused buffers of ``slot``."""
         _, rays = _jit()
+        o, d, length, pixel = self.buffers[slot]
         count = int(rays(self.normals, self.pixels, self.origin64, self.origin_local,
-                         np.asarray(light_position, np.float64), float(tmax_scale), self.o, self.d, self.length,
-                         self.ray_pixel, self.soa))
-        o = self.o[:, :count] if self.soa else self.o[:count]
-        return o, self.d[:count], self.length[:count], self.ray_pixel[:count]
+                         np.asarray(light_position, np.float64), float(tmax_scale), o, d, length, pixel, self.soa))
+        return (o[:, :count] if self.soa else o[:count]), d[:count], length[:count], pixel[:count]
