@@ -20,6 +20,9 @@ import numpy as np
 from suite.trace.robust import offset_ray_origin
 
 INV_PI = 1.0 / np.pi
+# The visibility pass works on about PIPELINE_CHUNKS chunks of at least PIPELINE_MIN_CHUNK pixels.
+PIPELINE_CHUNKS = 4
+PIPELINE_MIN_CHUNK = 16384
 # A shadow ray stops this fraction short of the light, so the light's own surface (or a surface the light
 # sits on) never shadows it.
 SHADOW_TMAX_SCALE = 1.0 - 1e-4
@@ -46,15 +49,26 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
 
     h, w = g.depth.shape
     n_lights = len(lights)
-    vis = np.zeros((n_lights, h * w), bool)  # light-major: each light's bits are one contiguous row
+    vis = np.zeros((h * w, n_lights), bool)
     idx_all = np.flatnonzero(g.valid.reshape(-1))
     if n_lights == 0 or len(idx_all) == 0:
-        return np.zeros((h, w, n_lights), bool)
+        return vis.reshape(h, w, n_lights)
     positions = np.ascontiguousarray(g.position.reshape(-1, 3), np.float64)
     normals = np.ascontiguousarray(g.geo_normal.reshape(-1, 3), np.float64)
     shift = getattr(tracer, "shift", None)
     soa = bool(getattr(tracer, "soa_origins", False))
-    chunk = max(int(chunk_rays), 1)
+    # A few chunks even when memory would allow one: only the first chunk's first light is generated while
+    # nothing is being traced, so smaller chunks shorten that serial start.
+    chunk = max(1, min(int(chunk_rays), max(PIPELINE_MIN_CHUNK, -(-len(idx_all) // PIPELINE_CHUNKS))))
+    tasks = [(c0, li) for c0 in range(0, len(idx_all), chunk) for li in range(n_lights)]
+    chunks: dict[int, ShadowRays] = {}
+
+    def generate(k):
+        c0, li = tasks[k]
+        if c0 not in chunks:
+            chunks.pop(c0 - chunk, None)  # the previous chunk's rays have all been traced
+            chunks[c0] = ShadowRays(positions, normals, idx_all[c0:c0 + chunk], shift, soa, slots=2)
+        return chunks[c0].toward(lights[li].position, SHADOW_TMAX_SCALE, k % 2)
 
     def trace(o, d, length):
         if hasattr(tracer, "occluded_local"):
@@ -63,18 +77,16 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
         o_world = (o.T if soa else o).astype(np.float64) + (0.0 if shift is None else shift)
         return tracer.occluded(o_world, d, 0.0, length)
 
-    # Pipelined: a worker thread generates light l+1's rays (compiled, GIL released) while the backend traces
-    # light l's. Two buffer slots alternate; the order of the results does not depend on the timing.
+    # Pipelined: a worker thread generates the next (chunk, light) task's rays (compiled, GIL released) while
+    # the backend traces the current one's. Buffer slots alternate; results do not depend on the timing.
     with ThreadPoolExecutor(max_workers=1) as pool:
-        for c0 in range(0, len(idx_all), chunk):
-            rays = ShadowRays(positions, normals, idx_all[c0:c0 + chunk], shift, soa, slots=2)
-            pending = pool.submit(rays.toward, lights[0].position, SHADOW_TMAX_SCALE, 0)
-            for li in range(n_lights):
-                o, d, length, pixel = pending.result()
-                if li + 1 < n_lights:
-                    pending = pool.submit(rays.toward, lights[li + 1].position, SHADOW_TMAX_SCALE, (li + 1) % 2)
-                vis[li, pixel] = ~trace(o, d, length)
-    return np.ascontiguousarray(vis.T).reshape(h, w, n_lights)
+        pending = pool.submit(generate, 0)
+        for k, (_, li) in enumerate(tasks):
+            o, d, length, pixel = pending.result()
+            if k + 1 < len(tasks):
+                pending = pool.submit(generate, k + 1)
+            vis[pixel, li] = ~trace(o, d, length)
+    return vis.reshape(h, w, n_lights)
 
 
 def shade_point_lights(g, lights, visibility, ambient=None, min_distance: float = 0.0) -> np.ndarray:
