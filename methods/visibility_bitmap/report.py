@@ -573,8 +573,8 @@ def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None)
         out.append("<p>Run: paper32 without compression at 640x360. Under UDP nothing is retransmitted; rows of "
                    "lost datagrams are repaired from the previous frame and show as DSSIM against the standalone "
                    "run. The client waits at most the run's message timeout (100 ms) for a UDP bitmap: datagrams that "
-                   "would arrive later count as lost, so on links where the bitmap takes longer than that (921,652 B "
-                   "on dsl-3m, lte, wan-50m) the UDP frame time is short because most rows are repaired, and the "
+                   "would arrive later count as lost, so on links where the bitmap takes longer than that (its 921,652 B "
+                   "need more than 100 ms below about 74 Mbit/s) the UDP frame time is short because rows are repaired, and the "
                    "cost shows as DSSIM against the standalone run (quality table below)." + writer.csv(by_net, "frame_time_vs_network.csv")
                    + "</p>" + _table(by_net)
                    + _plot_network(by_net, writer))
