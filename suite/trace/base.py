@@ -15,6 +15,8 @@ box centre in float64 before they become float32. A scene far from the origin th
 scene at the origin inside the backend (hit distances, watertight edge tests); only its input coordinates
 carry their own rounding.
 
+A tracer reuses its ray buffers from query to query, so one tracer serves one thread at a time.
+
 Animated scenes: ``update(t_s)`` moves the scene's rigidly animated objects; backends keep static and moving
 geometry apart so that an update rebuilds only what moved.
 """
@@ -43,7 +45,19 @@ class Hits:
         return self.prim >= 0
 
 
-def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False):
+def _scratch_array(scratch, name: str, shape, dtype) -> np.ndarray:
+    """A reusable array from ``scratch`` (a dict), or a new one without it. Reusing the pages of the previous
+    query avoids the page faults of fresh large allocations on every call."""
+    if scratch is None:
+        return np.empty(shape, dtype)
+    size = int(np.prod(shape))
+    buf = scratch.get(name)
+    if buf is None or buf.size < size or buf.dtype != dtype:
+        buf = scratch[name] = np.empty(max(size, 1), dtype)
+    return buf[:size].reshape(shape)
+
+
+def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False, scratch: dict | None = None):
     """Validates ray arrays, moves origins into the tracing frame (minus ``shift``) and applies ``tmin`` by
     advancing them. Returns (o, d, tmin, length) as float32; ``o`` is (3, N) with ``soa`` (the layout Dr.Jit
     takes without a copy), else (N, 3).
@@ -58,26 +72,36 @@ def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False):
     if o_in.shape != d.shape:
         raise UserError(f"ray origins {o_in.shape} and directions {d.shape} differ in shape")
     n = len(o_in)
-    o = np.empty((3, n), np.float32) if soa else np.empty((n, 3), np.float32)
+    o = _scratch_array(scratch, "o", (3, n) if soa else (n, 3), np.float32)
     # Column by column: numpy's broadcast over a length-3 inner axis is several times slower.
     for c in range(3):
         np.subtract(o_in[:, c], shift[c] if shift is not None else 0.0, out=o[c] if soa else o[:, c], casting="unsafe")
     scalar_tmin = np.ndim(tmin) == 0
-    tmin_a = np.full(n, np.float32(tmin), np.float32) if scalar_tmin else np.asarray(tmin, np.float32).reshape(n)
-    if not scalar_tmin or tmin > 0:
+    has_tmin = not scalar_tmin or tmin > 0
+    tmin_a = (np.full(n, np.float32(tmin), np.float32) if scalar_tmin else np.asarray(tmin, np.float32).reshape(n)) \
+        if has_tmin else np.float32(0.0)
+    if has_tmin:
         if soa:
             o += d.T * tmin_a[None, :]
         else:
             o += d * tmin_a[:, None]
-    # Lengths are clipped to [0, MAX_RAY_LENGTH] in one pass: both backends take a finite float32 far value.
+    # Lengths are clipped to [0, MAX_RAY_LENGTH] (both backends take a finite float32 far value), in the same
+    # pass that makes the float32 copy.
     if np.ndim(tmax) == 0:
-        length = np.full(n, np.float32(tmax), np.float32)
+        length = _scratch_array(scratch, "length", (n,), np.float32)
+        length.fill(np.clip(np.float32(tmax) - np.float32(tmin if scalar_tmin else 0.0), 0.0, MAX_RAY_LENGTH))
+        if not scalar_tmin:
+            length -= tmin_a
+            np.clip(length, 0.0, MAX_RAY_LENGTH, out=length)
     else:
-        length = np.array(tmax, np.float32).reshape(n)
-    if not scalar_tmin or tmin > 0:
-        length -= tmin_a
-    np.clip(length, 0.0, MAX_RAY_LENGTH, out=length)
-    return o, d, tmin_a, np.ascontiguousarray(length, np.float32)
+        tmax_a = np.asarray(tmax).reshape(n)
+        length = _scratch_array(scratch, "length", (n,), np.float32)
+        if has_tmin:
+            np.subtract(tmax_a, tmin_a, out=length, casting="unsafe")
+            np.clip(length, 0.0, MAX_RAY_LENGTH, out=length)
+        else:
+            np.clip(tmax_a, 0.0, MAX_RAY_LENGTH, out=length, casting="unsafe")
+    return o, d, tmin_a, length
 
 
 class Tracer:
@@ -85,11 +109,13 @@ class Tracer:
 
     name = "base"
     soa_origins = False  # backends that take (3, N) origins without a copy set this
+    normalized_hits = False  # backends whose misses already read t = inf, prim = -1, u = v = 0 set this
 
     def __init__(self, scene):
         self.scene = scene
         self.counters = {"rays_intersect": 0, "rays_occluded": 0}
         self._time_s = 0.0
+        self._scratch: dict = {}  # ray buffers reused across queries (consumed within each call)
         lo, hi = scene.bounds()
         self.shift = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
 
@@ -99,7 +125,7 @@ class Tracer:
 
     # subclasses implement _intersect(o, d, length) -> (t, prim, u, v) and _occluded(o, d, length) -> bool
     def intersect(self, origins, dirs, tmin=0.0, tmax=np.inf) -> Hits:
-        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins)
+        o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins, self._scratch)
         self.counters["rays_intersect"] += len(d)
         if len(d) == 0:
             z = np.zeros(0, np.float32)
@@ -107,14 +133,15 @@ class Tracer:
         t, prim, u, v = self._intersect(o, d, length)
         t, u, v = (_writable(x) for x in (t, u, v))
         prim = np.asarray(prim, np.int32)
-        miss = prim < 0
         if np.ndim(tmin) != 0 or tmin > 0:
-            t += tmin_a
-        t[miss], u[miss], v[miss] = np.inf, 0.0, 0.0
+            t += tmin_a  # inf stays inf
+        if not self.normalized_hits:
+            miss = prim < 0
+            t[miss], u[miss], v[miss] = np.inf, 0.0, 0.0
         return Hits(t, prim, u, v)
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
-        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins)
+        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins, self._scratch)
         self.counters["rays_occluded"] += len(d)
         if len(d) == 0:
             return np.zeros(0, bool)

@@ -13,6 +13,7 @@ from suite.trace.base import Tracer, split_static_dynamic
 
 class MitsubaTracer(Tracer):
     name = "mitsuba"
+    normalized_hits = True  # misses already carry t = inf, prim = -1, u = v = 0
     soa_origins = True  # Dr.Jit wraps contiguous rows without a copy; strided columns cost a copy each
 
     def __init__(self, scene, variant: str = "auto"):
@@ -36,6 +37,11 @@ class MitsubaTracer(Tracer):
         # A static scene's only mesh holds the faces in order: primitive index = face index.
         self._identity_prims = len(self._shape_faces) == 1 and np.array_equal(self._shape_faces[0],
                                                                              np.arange(scene.num_faces))
+        if not self.is_scalar:
+            # Shape s's local primitive p is global face _face_table[_shape_first_face[s] + p].
+            self._face_table = mi.Int32(np.concatenate(self._shape_faces).astype(np.int32))
+            self._shape_first_face = mi.UInt32(
+                np.cumsum([0] + [len(f) for f in self._shape_faces[:-1]]).astype(np.uint32))
         self._params = mi.traverse(self.mscene) if len(self.dynamic_faces) else None
         self._dynamic_key = None
         if self._params is not None:
@@ -97,32 +103,23 @@ class MitsubaTracer(Tracer):
                     t[i], prim[i] = pi.t, faces[int(pi.prim_index)]
                     uv[:, i] = pi.prim_uv
             return t, prim, uv[0], uv[1]
+        dr, mi = self.dr, self.mi
         pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
-        fields = [pi.t, pi.prim_index, pi.prim_uv]
-        multi = len(self._shape_faces) > 1
-        if multi:
-            fields.append(pi.shape_index)
-        # One kernel launch for all fields: converting them one by one would re-trace the rays each time.
-        self.dr.eval(*fields)
-        t = np.array(pi.t, np.float32)
-        valid = np.isfinite(t)
-        local = np.array(pi.prim_index)
-        uv = np.array(pi.prim_uv, np.float32)
-        if uv.shape[0] != 2:
-            uv = uv.T
-        if multi:
-            shape_index = np.array(pi.shape_index, np.int64)
-            prim = np.full(n, -1, np.int32)
-            for s, faces in enumerate(self._shape_faces):
-                sel = valid & (shape_index == s)
-                prim[sel] = faces[local[sel].astype(np.int64)]
-        elif self._identity_prims:
-            prim = local.astype(np.int32)
-            prim[~valid] = -1
+        # Misses, the global face index and the barycentrics are resolved inside the same Dr.Jit kernel as the
+        # traversal (one launch, no numpy passes afterwards): t = inf, prim = -1, u = v = 0 on a miss.
+        valid = pi.is_valid()
+        if self._identity_prims:
+            prim = mi.Int32(pi.prim_index)
         else:
-            faces = self._shape_faces[0]
-            prim = np.where(valid, faces[np.where(valid, local, 0)], -1).astype(np.int32)
-        return t, prim, uv[0], uv[1]
+            shape = pi.shape_index if len(self._shape_faces) > 1 else dr.zeros(mi.UInt32, n)
+            first = dr.gather(mi.UInt32, self._shape_first_face, shape, valid)
+            prim = dr.gather(mi.Int32, self._face_table, first + pi.prim_index, valid)
+        t = dr.select(valid, pi.t, dr.inf)
+        prim = dr.select(valid, prim, -1)
+        u = dr.select(valid, pi.prim_uv.x, 0.0)
+        v = dr.select(valid, pi.prim_uv.y, 0.0)
+        dr.eval(t, prim, u, v)
+        return np.array(t, np.float32), np.array(prim, np.int32), np.array(u, np.float32), np.array(v, np.float32)
 
     def _occluded(self, o, d, length):
         if self.is_scalar:
