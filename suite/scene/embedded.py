@@ -452,6 +452,7 @@ def cornell_camera_path() -> CameraPath:
 
 
 def _cornell() -> Scene:
+    """Mitsuba's cornell_box(): a closed box with one area light, two blocks; a gentle orbit and dolly."""
     from suite.env import mitsuba
     from suite.scene.mitsuba_io import load_mitsuba
 
