@@ -136,8 +136,10 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     width, height = check_resolution(resolution or scene.camera.resolution)
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
-    origins, dirs = camera_rays(pose, scene.camera.fov_deg, width, height)
-    hits = tracer.intersect(origins, dirs)
+    # float64 rays give exact surface positions below; the tracers take their float32 rounding.
+    o64, d64 = camera_rays(pose, scene.camera.fov_deg, width, height, dtype=np.float64)
+    dirs = d64.astype(np.float32)
+    hits = tracer.intersect(o64.astype(np.float32), dirs)
     n = width * height
     valid = hits.prim >= 0
     position = np.zeros((n, 3), np.float64)
@@ -149,7 +151,6 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     if len(idx):
         positions = scene.positions_at(t_s)
         normals = scene.normals_at(t_s)
-        o64, d64 = camera_rays(pose, scene.camera.fov_deg, width, height, dtype=np.float64)
         p, ng, ns, alb, em = surface_attributes(scene, positions, normals, hits.prim[idx], hits.u[idx], hits.v[idx],
                                                 o64[idx], d64[idx])
         d = dirs[idx].astype(np.float64)

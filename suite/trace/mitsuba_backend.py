@@ -129,16 +129,14 @@ class MitsubaTracer(Tracer):
             return out
         return np.array(self.mscene.ray_test(self._rays(o, d, length)), bool)
 
+    # Raw access for the overhead benchmark: (N, 3) float32 rays handed to Mitsuba directly, as a user would.
+    def _raw_ray(self, o, d, length):
+        return self._rays(np.asarray(o).T, d, length)
+
     def raw_occluded(self, o, d, length):
-        mi = self.mi
-        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-        ray.maxt = mi.Float(length)
-        return np.array(self.mscene.ray_test(ray), bool)
+        return np.array(self.mscene.ray_test(self._raw_ray(o, d, length)), bool)
 
     def raw_intersect(self, o, d, length):
-        mi = self.mi
-        ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-        ray.maxt = mi.Float(length)
-        pi = self.mscene.ray_intersect_preliminary(ray, coherent=False)
+        pi = self.mscene.ray_intersect_preliminary(self._raw_ray(o, d, length), coherent=False)
         self.dr.eval(pi.t, pi.prim_index, pi.prim_uv)
         return np.array(pi.t), np.array(pi.prim_index), np.array(pi.prim_uv)
