@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from suite import registry, results
+from suite.harness import registry, results
 
 REPO_DIR = Path(__file__).resolve().parent.parent
 EXTRA_TABLE_DIRS: list[Path] = []

@@ -6,7 +6,7 @@ import sys
 import os
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-from suite.llvm import find_libllvm, LLVMNotFound  # noqa: E402
+from suite.core.llvm import find_libllvm, LLVMNotFound  # noqa: E402
 
 try:
     print(find_libllvm())

@@ -38,6 +38,6 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
 "$VENV/bin/python" -m pip install -q -e ".[test${LZO}]"
-"$VENV/bin/python" -c "import suite.env as e; e.check_llvm_backend()" 
+"$VENV/bin/python" -c "import suite.core.env as e; e.check_llvm_backend()" 
 touch "$VENV/.installed"
 echo "setup: ready ($VENV)"

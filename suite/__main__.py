@@ -1,6 +1,6 @@
 """``python -m suite`` = the ``splitbench`` command."""
 import sys
 
-from suite.cli import main
+from suite.harness.cli import main
 
 sys.exit(main())

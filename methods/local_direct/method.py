@@ -4,7 +4,7 @@ Every frame traces a G-buffer (one primary ray per pixel) and shades it with Lam
 (point lights with one shadow ray each, area lights with ``area_samples`` shadow rays per pixel). It is the
 lower bound on latency and the reference row for "what does splitting buy" in every report.
 """
-from suite.method import Method
+from suite.harness.method import Method
 
 
 class LocalDirect(Method):
@@ -13,8 +13,8 @@ class LocalDirect(Method):
     uses_network = False  # nothing is sent, so the zero-latency run would repeat this one
 
     def frame(self, ctx):
-        from suite.gbuffer import render_gbuffer
-        from suite.shading import direct_lighting
+        from suite.core.gbuffer import render_gbuffer
+        from suite.core.shading import direct_lighting
 
         w, h = ctx.resolution
         with ctx.stage("gbuffer", place="client") as st:

@@ -44,8 +44,8 @@ DEFAULT_CODECS = ("none", "lzo", "lz4", "zstd", "zstd:9", "bitplane+lz4", "bitpl
 
 def render_bitmaps(scene, tracer, resolution, frames: int, light_limit: int | None = None) -> list[np.ndarray]:
     """``(H, W, L)`` bool visibility of the first ``frames`` frames of the camera path."""
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import point_light_visibility
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import point_light_visibility
 
     out = []
     for i in range(frames):
@@ -93,9 +93,9 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
     import netsim
 
     from methods.visibility_bitmap.method import VisibilityBitmap
-    from suite.method import Clock, Context
-    from suite.metrics import compare
-    from suite.timeline import IdealLink, Timeline
+    from suite.harness.method import Clock, Context
+    from suite.core.metrics import compare
+    from suite.harness.timeline import IdealLink, Timeline
 
     def sequence(method, zero_latency, link):
         timeline = Timeline({"down": link, "up": IdealLink(800.0, 2.5)})
@@ -154,7 +154,7 @@ class _RecordingTracer:
         return self.tracer.occluded_local(o, d, length)
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf):
-        from suite.trace.base import as_rays
+        from suite.core.trace.base import as_rays
 
         o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift)
         self.rays.append((o.copy(), d.copy(), length.copy()))  # the caller may reuse its buffers
@@ -171,7 +171,7 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
                repeats: int = 7) -> dict:
     """Rays/s of the method's visibility pass against the raw backend on the same rays (goal: ratio >= 0.90)."""
     from methods.visibility_bitmap.method import visibility_pass
-    from suite.gbuffer import render_gbuffer
+    from suite.core.gbuffer import render_gbuffer
 
     if not hasattr(tracer, "raw_occluded"):
         raise NotImplementedError(f"backend {getattr(tracer, 'name', '?')} has no raw entry point")
@@ -222,7 +222,7 @@ def linearity(scene, tracer, resolutions, light_counts, t_s: float = 0.5, layout
     pixels only, so its fit is reported beside it.
     """
     from methods.visibility_bitmap.method import visibility_pass
-    from suite.gbuffer import render_gbuffer
+    from suite.core.gbuffer import render_gbuffer
 
     all_lights = scene.lights_at(t_s)
     if max(light_counts) > len(all_lights):
@@ -310,7 +310,7 @@ def load(results_root) -> dict | None:
 
 def store(results_root, parts: dict) -> Path:
     """Merges ``parts`` into the stored document (atomically) and returns its path."""
-    from suite.results import _jsonable
+    from suite.harness.results import _jsonable
 
     path = bench_path(results_root)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -332,7 +332,7 @@ TABLE_CODECS = ("none", "lzo", "lz4", "zstd", "bitplane+zstd", "delta+bitplane+z
 
 
 def _resolutions(text: str) -> list[tuple[int, int]]:
-    from suite.runner import parse_resolution
+    from suite.harness.runner import parse_resolution
 
     return [tuple(parse_resolution(r)) for r in text.split(",") if r.strip()]
 
@@ -350,7 +350,7 @@ def _ints(text: str) -> list[int]:
 
 
 def parser() -> argparse.ArgumentParser:
-    from suite.cli import _Parser
+    from suite.harness.cli import _Parser
 
     ap = _Parser(prog="splitbench bench visibility_bitmap", description=__doc__.splitlines()[0])
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
@@ -379,7 +379,7 @@ def parser() -> argparse.ArgumentParser:
 
 def run(args) -> dict:
     """Runs the chosen parts; returns ``{part: result}``."""
-    from suite import runner
+    from suite.harness import runner
     from suite.errors import UserError
 
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
@@ -477,7 +477,7 @@ def main(argv=None) -> int:
     else:
         out_note = "not stored (--no-store)"
     if args.json:
-        from suite.cli import _print_json
+        from suite.harness.cli import _print_json
 
         _print_json(out)
     else:
@@ -487,7 +487,7 @@ def main(argv=None) -> int:
 
 
 def _loss_main(args) -> int:
-    from suite import runner
+    from suite.harness import runner
 
     w, h = _resolutions(args.resolution)[0]
     scene = runner.load_scene(args.scene)

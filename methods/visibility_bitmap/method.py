@@ -70,7 +70,7 @@ import struct
 import numpy as np
 
 from suite.errors import UserError
-from suite.method import Method
+from suite.harness.method import Method
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs, transfer, wire
@@ -101,7 +101,7 @@ def visibility_pass(g, lights, tracer, layout: str) -> tuple[np.ndarray, np.ndar
     the ``visibility`` stage times, and what ``splitbench bench visibility_bitmap`` compares with the backend's
     raw occluded-ray throughput.
     """
-    from suite.shading import point_light_visibility
+    from suite.core.shading import point_light_visibility
 
     visibility = point_light_visibility(g, lights, tracer)
     return visibility, bm.pack(visibility, layout)
@@ -159,7 +159,7 @@ class VisibilityBitmap(Method):
         return self.ambient_radiance if self.ambient else None
 
     def _shade(self, scene, g, lights, visibility):
-        from suite.shading import min_light_distance, shade_point_lights
+        from suite.core.shading import min_light_distance, shade_point_lights
 
         # seed 000 §3.1: E = Σ_i I_i/π · ρ · max(n·L_i, 0) · k_shadow,i with distance falloff (Mitsuba units);
         # §5.1 / Fig. 9: + L_ambient · ρ where all k_shadow = 0.
@@ -173,8 +173,8 @@ class VisibilityBitmap(Method):
 
     def _standalone(self, ctx) -> np.ndarray:
         """Algorithm 3A (seed 000 §3.1, §4.5.1 standalone mode): everything on one machine, no wire."""
-        from suite.gbuffer import render_gbuffer
-        from suite.shading import point_light_visibility
+        from suite.core.gbuffer import render_gbuffer
+        from suite.core.shading import point_light_visibility
 
         w, h = ctx.resolution
         lights = ctx.scene.lights_at(ctx.t_s)
@@ -198,7 +198,7 @@ class VisibilityBitmap(Method):
 
     def _distributed(self, ctx) -> np.ndarray:
         """Algorithms 3B-1 (client) and 3B-2 (server), scheduled as in seed 000 Figure 7."""
-        from suite.gbuffer import render_gbuffer
+        from suite.core.gbuffer import render_gbuffer
 
         w, h = ctx.resolution
         scene, tracer = ctx.scene, ctx.tracer

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from suite.runner import RUN_DEFAULTS
+from suite.harness.runner import RUN_DEFAULTS
 
 SUBDIR = "visibility_bitmap"
 

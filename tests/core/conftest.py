@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from suite.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
+from suite.core.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
 
 
 def quad_mesh(corners, normal):

@@ -1,7 +1,7 @@
 """Our direct lighting agrees with Mitsuba's `direct` integrator on the same scene.
 
 Tolerance, derived from the noise of the images themselves: the reference is rendered in several passes, so
-every pixel has a standard error se_ref (suite.reference.render_with_stderr); our area-light estimate is
+every pixel has a standard error se_ref (suite.core.reference.render_with_stderr); our area-light estimate is
 averaged over independent seeds, giving se_ours (point lights are noise-free). For each pixel and channel,
 z = (ours - ref) / sqrt(se_ref^2 + se_ours^2 + (0.01 ref)^2). If the two images estimate the same expectation, z
 is close to a standard normal variable, so we require
@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from suite.gbuffer import render_gbuffer
-from suite.reference import render_with_stderr
-from suite.scene import load
-from suite.scene.mitsuba_io import to_mitsuba_dict
-from suite.shading import direct_lighting, point_light_visibility
-from suite.trace import make
+from suite.core.gbuffer import render_gbuffer
+from suite.core.reference import render_with_stderr
+from suite.core.scene import load
+from suite.core.scene.mitsuba_io import to_mitsuba_dict
+from suite.core.shading import direct_lighting, point_light_visibility
+from suite.core.trace import make
 
 
 def edge_mask(scene, g, t_s, tracer):
@@ -87,14 +87,14 @@ def test02_point_light_direct_lighting_matches_mitsuba_on_living_room(backend):
 
 def test03_a_wrong_light_intensity_is_detected():
     """The comparison has teeth: 5 % too much light fails it."""
-    from suite.scene.model import PointLight
+    from suite.core.scene.model import PointLight
 
     scene = load("living_room")
     brighter = [PointLight(lt.name, lt.position, lt.intensity * 1.05) for lt in scene.point_lights]
     resolution, t_s = (64, 36), 0.5
     tracer = make("embree", scene)
     g = render_gbuffer(scene, tracer, t_s, resolution)
-    from suite.shading import shade_point_lights
+    from suite.core.shading import shade_point_lights
 
     ours = shade_point_lights(g, brighter, point_light_visibility(g, brighter, tracer))
     ref, se_ref = render_with_stderr(to_mitsuba_dict(scene, t_s, resolution, integrator={"type": "direct"}),

@@ -2,15 +2,15 @@
 import numpy as np
 import pytest
 
-from suite.gbuffer import camera_rays, project, render_gbuffer
+from suite.core.gbuffer import camera_rays, project, render_gbuffer
 from suite.errors import UserError
-from suite.scene import load
-from suite.scene.mitsuba_io import sensor_dict
-from suite.trace import make
+from suite.core.scene import load
+from suite.core.scene.mitsuba_io import sensor_dict
+from suite.core.trace import make
 
 
 def test01_camera_rays_match_mitsuba_perspective_sensor_at_pixel_centres():
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     mi = mitsuba("llvm")
     scene = load("living_room")

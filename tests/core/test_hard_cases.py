@@ -3,11 +3,11 @@ degenerate triangles. Each runs on both backends."""
 import numpy as np
 import pytest
 
-from suite.gbuffer import render_gbuffer
-from suite.scene import load
-from suite.scene.model import Material, PointLight
-from suite.shading import direct_lighting, point_light_visibility, shade_point_lights
-from suite.trace import make
+from suite.core.gbuffer import render_gbuffer
+from suite.core.scene import load
+from suite.core.scene.model import Material, PointLight
+from suite.core.shading import direct_lighting, point_light_visibility, shade_point_lights
+from suite.core.trace import make
 
 BACKENDS = ["embree", "mitsuba-llvm"]
 
@@ -94,7 +94,7 @@ def test05_degenerate_triangles_are_ignored_without_nan(backend, room_scene):
 def test06_offset_origins_do_not_self_intersect_even_at_grazing_angles(backend, offset):
     """Shadow rays leaving every visible surface point into its hemisphere are not blocked within 1 mm
     any more often than with a 4x larger offset (what remains is genuine contact geometry)."""
-    import suite.trace.robust as robust
+    import suite.core.trace.robust as robust
 
     scene = load("atrium").translated([offset] * 3) if offset else load("atrium")
     tracer = make(backend, scene)

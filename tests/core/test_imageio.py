@@ -4,9 +4,9 @@ import os
 import numpy as np
 import pytest
 
-from suite import imageio
+from suite.core import imageio
 from suite.errors import UserError
-from suite.imageio import read_exr, write_exr, write_png
+from suite.core.imageio import read_exr, write_exr, write_png
 
 
 def random_image(seed, shape=(12, 20, 3)):

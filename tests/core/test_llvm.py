@@ -1,7 +1,7 @@
 """libLLVM discovery for Dr.Jit: never LLVM < 16, never a silent fall-back."""
 import pytest
 
-import suite.llvm as llvm
+import suite.core.llvm as llvm
 
 
 def test01_version_is_read_from_common_file_names():
@@ -37,6 +37,6 @@ def test04_explicit_path_is_checked(monkeypatch, tmp_path):
 
 def test05_this_machine_has_a_working_llvm_backend():
     """The set-up installed a libLLVM that renders (the probe runs in a child process)."""
-    from suite.env import check_llvm_backend
+    from suite.core.env import check_llvm_backend
 
     assert llvm.llvm_major(check_llvm_backend()) >= llvm.MIN_LLVM_MAJOR

@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from suite import metrics
+from suite.core import metrics
 from suite.errors import UserError
-from suite.metrics import compare, dssim, flip, nrmse, psnr, ssim, to_display
+from suite.core.metrics import compare, dssim, flip, nrmse, psnr, ssim, to_display
 
 
 def srgb_decode(display):

@@ -7,18 +7,18 @@ import os
 import numpy as np
 import pytest
 
-from suite import reference
+from suite.core import reference
 from suite.errors import UserError
-from suite.reference import (cached_render, direct_reference, path_reference, reference_path_for,
+from suite.core.reference import (cached_render, direct_reference, path_reference, reference_path_for,
                              render_mitsuba_dict, render_with_stderr, scene_reference)
-from suite.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
+from suite.core.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
 
 VARIANT = "llvm"
 
 
 @pytest.fixture
 def mi():
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     return mitsuba(VARIANT)
 

@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 
 from suite.errors import UserError
-from suite.gbuffer import camera_rays
-from suite.scene import list_scenes, load
-from suite.trace import make, offset_ray_origin
+from suite.core.gbuffer import camera_rays
+from suite.core.scene import list_scenes, load
+from suite.core.trace import make, offset_ray_origin
 
 SCENES = sorted(list_scenes())
 
@@ -71,7 +71,7 @@ def test04_counters_count_every_ray(backend, room_scene):
 
 
 def test05_robust_offset_scales_with_coordinate_magnitude():
-    from suite.trace.robust import OFFSET_ULPS
+    from suite.core.trace.robust import OFFSET_ULPS
 
     n = np.array([[0, 1, 0]], np.float64)
     steps = []
@@ -132,6 +132,6 @@ def test08_scalar_variant_is_a_slow_but_correct_last_resort(room_scene):
         np.testing.assert_allclose(hs.t, he.t, rtol=1e-5)
         np.testing.assert_array_equal(scalar.occluded(o, d, 0.0, 1.0), ref.occluded(o, d, 0.0, 1.0))
     finally:
-        from suite.env import mitsuba
+        from suite.core.env import mitsuba
 
         mitsuba("llvm")  # the variant is process-global: restore the default for later tests

@@ -53,7 +53,7 @@ def fake_write(path, img, exposure=1.0):
 
 @pytest.fixture
 def fake_core(monkeypatch):
-    from suite import runner
+    from suite.harness import runner
 
     monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(FAKE_METHODS))
     monkeypatch.setattr(runner, "load_scene", lambda spec: fake_scene())

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from suite import cli, results
+from suite.harness import cli, results
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -112,7 +112,7 @@ def test07_python_dash_m_suite_reports_user_errors_without_traceback(tmp_path):
 def test08_compare_prints_the_metrics_of_two_exr_files(tmp_path, capsys):
     import numpy as np
 
-    from suite.imageio import write_exr
+    from suite.core.imageio import write_exr
 
     ref = np.linspace(0, 1, 32 * 24 * 3, dtype=np.float32).reshape(24, 32, 3)
     write_exr(tmp_path / "ref.exr", ref)
@@ -133,11 +133,11 @@ def test09_reference_rejects_a_non_exr_output_before_rendering(fake_core, tmp_pa
 def test10_bench_tracing_prints_suite_and_raw_rates_and_their_ratio(fake_core, capsys, monkeypatch):
     import types
 
-    fake_bench = types.ModuleType("suite.trace.bench")
+    fake_bench = types.ModuleType("suite.core.trace.bench")
     rates = {"suite_rays_per_s": 2.0e6, "raw_rays_per_s": 4.0e6, "ratio": 0.5}
     fake_bench.run = lambda scene, backend: {"scene": "toy", "rays": 1000, "repeats": 5,
                                              "occluded": rates, "intersect": rates}
-    monkeypatch.setitem(sys.modules, "suite.trace.bench", fake_bench)
+    monkeypatch.setitem(sys.modules, "suite.core.trace.bench", fake_bench)
     code, out, _ = _run(capsys, "bench", "tracing", "--scene", "toy", "--backend", "fake")
     assert code == 0 and out.count("suite     2,000,000 rays/s") == 2 and "raw     4,000,000 rays/s" in out
     assert "ratio 0.500" in out

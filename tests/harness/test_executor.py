@@ -2,7 +2,7 @@
 import pandas as pd
 import pytest
 
-from suite import executor
+from suite.harness import executor
 from suite.errors import UserError
 
 

@@ -2,8 +2,8 @@
 import pandas as pd
 import pytest
 
-from suite import registry, results
-from suite.method import Method
+from suite.harness import registry, results
+from suite.harness.method import Method
 
 METHODS = sorted(registry.discover())
 
@@ -29,7 +29,7 @@ def test03_every_default_is_documented_and_variants_override_known_keys(name):
 @pytest.mark.parametrize("name", METHODS)
 @pytest.mark.parametrize("preset", registry.PRESETS)
 def test04_every_preset_point_validates(name, preset):
-    from suite import runner
+    from suite.harness import runner
 
     for point in registry.get(name).preset_points(preset):
         point = dict(point)
@@ -39,9 +39,9 @@ def test04_every_preset_point_validates(name, preset):
 
 
 def test05_local_direct_renders_deterministic_frames_end_to_end(tmp_path):
-    pytest.importorskip("suite.gbuffer")
-    pytest.importorskip("suite.shading")
-    from suite import runner
+    pytest.importorskip("suite.core.gbuffer")
+    pytest.importorskip("suite.core.shading")
+    from suite.harness import runner
 
     cfg = runner.make_config("local_direct", scene="living_room", resolution="32x18", frames=2, reference_spp=0)
     a = runner.execute(cfg, tmp_path / "a")

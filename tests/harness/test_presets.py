@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from suite import presets, registry
+from suite.harness import presets, registry
 from suite.errors import UserError
 
 FAKE_METHODS = Path(__file__).parent / "fake_methods"

@@ -3,7 +3,7 @@ import pandas as pd
 import pytest
 
 from reports import build as report
-from suite import executor
+from suite.harness import executor
 
 
 def test01_report_has_every_section_and_table(fake_config, tmp_path):

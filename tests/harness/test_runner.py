@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from suite import results
+from suite.harness import results
 from suite.errors import UserError
 
 

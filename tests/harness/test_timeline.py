@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from suite.timeline import IdealLink, Timeline, run_async, run_sync
+from suite.harness.timeline import IdealLink, Timeline, run_async, run_sync
 
 MS = 1e-3
 
@@ -130,7 +130,7 @@ def test07_sends_out_of_time_order_queue_behind_earlier_ones():
 def test08_a_message_that_never_arrives_releases_dependants_after_the_timeout():
     class Blackhole:
         def send(self, size_bytes, direction, protocol, at_s, deadline_s=None):
-            from suite.timeline import Delivery
+            from suite.harness.timeline import Delivery
             return Delivery(arrival_s=math.inf, delivered_bytes=0, lost_ranges=[(0, size_bytes)], complete=False)
 
     tl = Timeline({"down": Blackhole(), "up": Blackhole()}, message_timeout_s=0.1)

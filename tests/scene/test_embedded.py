@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from suite.errors import UserError
-from suite.scene.builder import CameraScript, SceneBuilder
-from suite.scene.embedded import ARENA_GRID, ARENA_ROOM_HALF_M, EMBEDDED, arena_corridors, arena_room_centers
+from suite.core.scene.builder import CameraScript, SceneBuilder
+from suite.core.scene.embedded import ARENA_GRID, ARENA_ROOM_HALF_M, EMBEDDED, arena_corridors, arena_room_centers
 
 BUILT_IN_CODE = ("living_room", "atrium", "arena")
 SAMPLE_DT_S = 1.0 / 120.0
@@ -380,7 +380,7 @@ def test_camera_script_turn_reaches_the_requested_yaw_at_the_requested_time():
 
 # --- cornell (through the Mitsuba loader) ---------------------------------------------------------
 
-@pytest.mark.skipif(importlib.util.find_spec("suite.scene.mitsuba_io") is None,
+@pytest.mark.skipif(importlib.util.find_spec("suite.core.scene.mitsuba_io") is None,
                     reason="the Mitsuba loader is not available")
 def test_cornell_loads_with_a_gentle_path_around_the_original_sensor():
     scene = EMBEDDED["cornell"]()

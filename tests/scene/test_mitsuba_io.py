@@ -3,12 +3,12 @@ import numpy as np
 import pytest
 
 from suite.errors import UserError
-from suite.scene import load
-from suite.scene.mitsuba_io import load_mitsuba, to_mitsuba_dict
+from suite.core.scene import load
+from suite.core.scene.mitsuba_io import load_mitsuba, to_mitsuba_dict
 
 
 def mi():
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     return mitsuba("llvm")
 

@@ -49,7 +49,7 @@ def test03_a_part_that_runs_again_replaces_only_its_own_entry(tmp_path):
 
 
 def test04_cli_runs_the_method_bench_and_refuses_unknown_parts(tmp_path, capsys):
-    from suite import cli
+    from suite.harness import cli
 
     code = cli.main(["bench", "visibility_bitmap", "--parts", "lights", "--lights-scene", "living_room",
                      "--light-counts", "2", "--lights-resolution", "16x9", "--frames", "1", "--out", str(tmp_path),

@@ -10,8 +10,8 @@ from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import transfer
 from methods.visibility_bitmap.method import VisibilityBitmap, decode_inputs, encode_inputs
 from suite.errors import UserError
-from suite.method import Clock, Context
-from suite.timeline import Delivery, IdealLink, Timeline
+from suite.harness.method import Clock, Context
+from suite.harness.timeline import Delivery, IdealLink, Timeline
 
 CONFIG = Path(__file__).resolve().parents[3] / "methods" / "visibility_bitmap" / "config.toml"
 RES = (48, 27)
@@ -20,8 +20,8 @@ FRAMES = 2
 
 @pytest.fixture(scope="module")
 def living_room():
-    from suite.scene import load
-    from suite.trace import make
+    from suite.core.scene import load
+    from suite.core.trace import make
 
     scene = load("living_room")
     return scene, make("embree", scene)
@@ -122,8 +122,8 @@ def test03_memory_transfers_are_modelled_from_raw_bitmap_bytes_and_bandwidth(liv
 
 
 def test04_udp_loss_repairs_only_the_lost_rows_with_lit(living_room, standalone):
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import min_light_distance, point_light_visibility, shade_point_lights
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import min_light_distance, point_light_visibility, shade_point_lights
 
     scene, tracer = living_room
     method = VisibilityBitmap({"udp_repair": "lit", "udp_slice_rows": 3})
@@ -163,8 +163,8 @@ def test06_ambient_term_lifts_only_pixels_where_every_light_is_shadowed(living_r
     method = VisibilityBitmap({"ambient": True, "ambient_radiance": 0.5})
     method.prepare(scene, tracer)
     images, _ = run(method, scene, tracer, zero_latency=True, frames=1)
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import point_light_visibility
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import point_light_visibility
 
     g = render_gbuffer(scene, tracer, scene.camera.frame_time_s(0), resolution=RES)
     dark = g.valid & ~point_light_visibility(g, scene.lights_at(0.0), tracer).any(axis=-1)
@@ -175,9 +175,9 @@ def test06_ambient_term_lifts_only_pixels_where_every_light_is_shadowed(living_r
 
 
 def test07_scene_moved_1e4_away_gives_the_same_bitmap_within_half_a_percent_of_pixels(living_room):
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import point_light_visibility
-    from suite.trace import make
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import point_light_visibility
+    from suite.core.trace import make
 
     scene, tracer = living_room
     far = scene.translated((1e4, 1e4, 1e4))
@@ -193,7 +193,7 @@ def test07_scene_moved_1e4_away_gives_the_same_bitmap_within_half_a_percent_of_p
 def test08_paper32_refuses_a_scene_with_more_than_32_lights(living_room):
     from dataclasses import replace
 
-    from suite.scene import PointLight
+    from suite.core.scene import PointLight
 
     scene, tracer = living_room
     many = replace(scene, point_lights=[PointLight(f"l{i}", (0.0, 2.0, 0.1 * i), (1.0, 1.0, 1.0)) for i in range(33)])
@@ -231,7 +231,7 @@ def test11_config_documents_every_parameter_and_every_variant_constructs():
 
 
 def test12_registry_finds_the_method_class():
-    from suite import registry
+    from suite.harness import registry
 
     assert registry.get("visibility_bitmap").load() is not None
 
@@ -241,8 +241,8 @@ def plane_scene(light_position):
 
     Nothing stands between the floor and a light above it or on the wall, so every floor pixel must be lit.
     """
-    from suite.scene import CameraKey
-    from suite.scene.builder import SceneBuilder
+    from suite.core.scene import CameraKey
+    from suite.core.scene.builder import SceneBuilder
 
     b = SceneBuilder()
     grey = b.add_material("grey", albedo=(0.7, 0.7, 0.7))
@@ -256,9 +256,9 @@ def plane_scene(light_position):
 @pytest.mark.parametrize("light_position", [(0.0, 0.02, -9.0), (3.0, 1.0, -10.0)],
                          ids=["grazing_the_floor", "on_the_wall_surface"])
 def test13_an_unoccluded_floor_has_no_acne_and_a_finite_lit_image(light_position):
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import point_light_visibility
-    from suite.trace import make
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import point_light_visibility
+    from suite.core.trace import make
 
     scene = plane_scene(light_position)
     tracer = make("embree", scene)
@@ -276,8 +276,8 @@ def test13_an_unoccluded_floor_has_no_acne_and_a_finite_lit_image(light_position
 def test14_without_ambient_the_image_is_the_cores_direct_lighting(living_room):
     # living_room has point lights only, so direct_lighting (proven against Mitsuba's `direct` integrator in
     # tests/core/test_direct_lighting.py) is exactly seed 000 §3.1's shading: the distributed image must equal it.
-    from suite.gbuffer import render_gbuffer
-    from suite.shading import direct_lighting
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.shading import direct_lighting
 
     scene, tracer = living_room
     method = VisibilityBitmap({"codec": "zstd", "layout": "packed8"})
@@ -293,10 +293,10 @@ def test15_distributed_image_agrees_with_mitsuba_direct_within_its_noise(living_
     """Same statistics as tests/core/test_direct_lighting.py: |z| > 5 on < 0.5 % of non-edge pixels, no bias."""
     from scipy import ndimage
 
-    from suite.gbuffer import render_gbuffer
-    from suite.reference import render_with_stderr
-    from suite.scene.mitsuba_io import to_mitsuba_dict
-    from suite.shading import point_light_visibility
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.reference import render_with_stderr
+    from suite.core.scene.mitsuba_io import to_mitsuba_dict
+    from suite.core.shading import point_light_visibility
 
     scene, tracer = living_room
     res, t_s = (64, 36), scene.camera.frame_time_s(0)
@@ -326,8 +326,8 @@ def test15_distributed_image_agrees_with_mitsuba_direct_within_its_noise(living_
 
 @pytest.mark.parametrize("layout,bytes_per_pixel", [("paper32", 4), ("packed8", 0)])
 def test16_a_scene_without_point_lights_sends_what_the_layout_says_and_matches_standalone(layout, bytes_per_pixel):
-    from suite.scene import load
-    from suite.trace import make
+    from suite.core.scene import load
+    from suite.core.trace import make
 
     scene = load("cornell")  # an area light only: seed 000 traces point lights, so L = 0
     tracer = make("embree", scene)

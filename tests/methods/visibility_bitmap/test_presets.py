@@ -1,7 +1,7 @@
 """The reproduce presets produce the runs the report section needs, every point validates, smoke stays tiny."""
 import pytest
 
-from suite import presets
+from suite.harness import presets
 
 
 def _points(preset):

@@ -107,11 +107,11 @@ def test03_codec_network_and_quality_tables_come_from_the_runs(results):
 
 def test04_section_writes_its_files_and_reads_the_stored_benchmark_without_running_anything(results,
                                                                                            monkeypatch):
-    import suite.gbuffer
-    import suite.runner
+    import suite.core.gbuffer
+    import suite.harness.runner
 
     tmp_path, dirs, frames = results
-    for module, name in ((suite.runner, "execute"), (suite.gbuffer, "render_gbuffer")):
+    for module, name in ((suite.harness.runner, "execute"), (suite.core.gbuffer, "render_gbuffer")):
         monkeypatch.setattr(module, name, lambda *a, **k: (_ for _ in ()).throw(AssertionError("ran")))
     out = tmp_path / "report"
     page = report.section(frames, dirs, out_dir=out)

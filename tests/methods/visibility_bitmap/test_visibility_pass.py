@@ -6,8 +6,8 @@ import pytest
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap.method import visibility_pass
-from suite.shading import SHADOW_TMAX_SCALE, point_light_visibility
-from suite.trace.robust import offset_ray_origin
+from suite.core.shading import SHADOW_TMAX_SCALE, point_light_visibility
+from suite.core.trace.robust import offset_ray_origin
 
 
 def straightforward_visibility(g, lights, tracer):
@@ -36,8 +36,8 @@ def straightforward_visibility(g, lights, tracer):
 
 
 def _scene_and_tracer(name, shift=None):
-    from suite.scene import load
-    from suite.trace import make
+    from suite.core.scene import load
+    from suite.core.trace import make
 
     scene = load(name)
     if shift is not None:
@@ -48,7 +48,7 @@ def _scene_and_tracer(name, shift=None):
 @pytest.mark.parametrize("name, shift", [("living_room", None), ("living_room", (1e4, 1e4, 1e4)),
                                          ("atrium", None), ("arena", None)])
 def test01_core_kernel_is_bit_identical_to_the_straightforward_formulation(name, shift):
-    from suite.gbuffer import render_gbuffer
+    from suite.core.gbuffer import render_gbuffer
 
     scene, tracer = _scene_and_tracer(name, shift)
     for t_s in (0.0, 0.9):
@@ -62,7 +62,7 @@ def test01_core_kernel_is_bit_identical_to_the_straightforward_formulation(name,
 
 
 def test02_background_pixels_get_no_ray_and_no_bit():
-    from suite.gbuffer import render_gbuffer
+    from suite.core.gbuffer import render_gbuffer
 
     scene, tracer = _scene_and_tracer("atrium")
     g = render_gbuffer(scene, tracer, 0.0, resolution=(64, 36))
@@ -74,7 +74,7 @@ def test02_background_pixels_get_no_ray_and_no_bit():
 
 
 def test03_visibility_pass_packs_what_it_traced():
-    from suite.gbuffer import render_gbuffer
+    from suite.core.gbuffer import render_gbuffer
 
     scene, tracer = _scene_and_tracer("living_room")
     g = render_gbuffer(scene, tracer, 0.0, resolution=(32, 18))
@@ -85,7 +85,7 @@ def test03_visibility_pass_packs_what_it_traced():
 
 
 def test04_compiled_ray_origins_match_offset_ray_origin_bit_for_bit_across_magnitudes():
-    from suite.trace.raygen import ShadowRays
+    from suite.core.trace.raygen import ShadowRays
 
     rng = np.random.default_rng(0)
     scales = np.array([0.0, 1e-30, 1e-8, 1e-3, 0.5, 1.0, 2.0, 3.0, 1e4, 1e7])
@@ -109,7 +109,7 @@ def test04_compiled_ray_origins_match_offset_ray_origin_bit_for_bit_across_magni
 @pytest.mark.parametrize("n_pixels", [1, 3, 5])
 def test05_tiny_pixel_sets_give_the_same_rays_in_both_layouts(n_pixels):
     """Layouts are chosen by flag, never guessed from array shapes (3 pixels look like a (3, N) array)."""
-    from suite.trace.raygen import ShadowRays
+    from suite.core.trace.raygen import ShadowRays
 
     p = np.arange(3 * n_pixels, dtype=np.float64).reshape(n_pixels, 3)
     n = np.tile([0.0, 1.0, 0.0], (n_pixels, 1))

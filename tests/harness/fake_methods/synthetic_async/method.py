@@ -1,7 +1,7 @@
 """Test-only async method: each update renders an image on the server; the client shows the newest one."""
 import numpy as np
 
-from suite.method import Method
+from suite.harness.method import Method
 
 
 class SyntheticAsync(Method):

@@ -1,7 +1,7 @@
 """Test-only sync method: the server 'renders' a seeded numpy image, the client 'decodes' it."""
 import numpy as np
 
-from suite.method import Method
+from suite.harness.method import Method
 
 
 def render(t_s, resolution, seed, gain, tracer):

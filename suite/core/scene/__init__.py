@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 
 from suite.errors import UserError
-from suite.scene.model import (CameraKey, CameraPath, CameraPose, LightAnimation, Material, PointLight,
+from suite.core.scene.model import (CameraKey, CameraPath, CameraPose, LightAnimation, Material, PointLight,
                                RigidAnimation, Scene)
 
 __all__ = ["load", "list_scenes", "Scene", "Material", "PointLight", "CameraKey", "CameraPath", "CameraPose",
@@ -19,7 +19,7 @@ _cache: dict[str, Scene] = {}
 
 def list_scenes() -> dict[str, str]:
     """Embedded scene names with a one-line description."""
-    from suite.scene.embedded import EMBEDDED
+    from suite.core.scene.embedded import EMBEDDED
 
     def first_line(fn):
         doc = (fn.__doc__ or "").strip().splitlines()
@@ -33,18 +33,18 @@ def load(spec) -> Scene:
     if isinstance(spec, Scene):
         return spec
     if isinstance(spec, dict):
-        from suite.scene.mitsuba_io import load_mitsuba
+        from suite.core.scene.mitsuba_io import load_mitsuba
 
         return load_mitsuba(spec)
     spec = os.fspath(spec)
-    from suite.scene.embedded import EMBEDDED
+    from suite.core.scene.embedded import EMBEDDED
 
     if spec in EMBEDDED:
         if spec not in _cache:
             _cache[spec] = EMBEDDED[spec]()
         return _cache[spec]
     if spec.endswith(".xml") or os.sep in spec:
-        from suite.scene.mitsuba_io import load_mitsuba
+        from suite.core.scene.mitsuba_io import load_mitsuba
 
         return load_mitsuba(spec)
     raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml)")

@@ -1,4 +1,4 @@
-"""Ray-tracing backends behind one interface (see :mod:`suite.trace.base`).
+"""Ray-tracing backends behind one interface (see :mod:`suite.core.trace.base`).
 
 ``make(backend, scene)`` with backend ``embree`` or ``mitsuba`` (variant auto: CUDA if a GPU is usable, else
 LLVM), or an explicit ``mitsuba-llvm``, ``mitsuba-cuda``, ``mitsuba-scalar``.
@@ -6,8 +6,8 @@ LLVM), or an explicit ``mitsuba-llvm``, ``mitsuba-cuda``, ``mitsuba-scalar``.
 from __future__ import annotations
 
 from suite.errors import UserError
-from suite.trace.base import Hits, Tracer
-from suite.trace.robust import offset_ray_origin
+from suite.core.trace.base import Hits, Tracer
+from suite.core.trace.robust import offset_ray_origin
 
 BACKENDS = {
     "embree": "Embree 4 via embreex (CPU, one thread)",
@@ -26,11 +26,11 @@ def list_backends() -> dict[str, str]:
 
 def make(backend: str, scene) -> Tracer:
     if backend == "embree":
-        from suite.trace.embree import EmbreeTracer
+        from suite.core.trace.embree import EmbreeTracer
 
         return EmbreeTracer(scene)
     if backend == "mitsuba" or backend.startswith("mitsuba-"):
-        from suite.trace.mitsuba_backend import MitsubaTracer
+        from suite.core.trace.mitsuba_backend import MitsubaTracer
 
         variant = "auto" if backend == "mitsuba" else backend.split("-", 1)[1]
         return MitsubaTracer(scene, variant=variant)

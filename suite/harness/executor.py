@@ -19,7 +19,7 @@ EXECUTORS = ("serial", "processes", "dask")
 
 def run_one(cfg: dict, results_root: str) -> dict:
     """Runs one config; failures come back as data so that one broken run does not stop a sweep."""
-    from suite import runner
+    from suite.harness import runner
 
     try:
         out = runner.execute(cfg, results_root)

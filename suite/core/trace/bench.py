@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from suite.gbuffer import render_gbuffer
-from suite.trace import make
-from suite.trace.base import as_rays
-from suite.trace.robust import offset_ray_origin
+from suite.core.gbuffer import render_gbuffer
+from suite.core.trace import make
+from suite.core.trace.base import as_rays
+from suite.core.trace.robust import offset_ray_origin
 
 
 def shadow_rays(scene, resolution=(320, 180), t_s: float = 0.5):

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from suite import registry, results
+from suite.harness import registry, results
 from suite.errors import UserError
-from suite.method import Clock, Context, Method
+from suite.harness.method import Clock, Context, Method
 from suite.progress import progress
-from suite.timeline import IdealLink, Timeline, run_async, run_sync
+from suite.harness.timeline import IdealLink, Timeline, run_async, run_sync
 
 DEFAULT_RESULTS_DIR = "results"
 METRICS = ("ssim", "dssim", "psnr_db", "nrmse", "flip")
@@ -42,25 +42,25 @@ SAVED_FRAMES = 3
 # ------------------------------------------------------------------------------------------------------ hooks
 
 def load_scene(spec):
-    from suite.scene import load
+    from suite.core.scene import load
 
     return load(spec)
 
 
 def scene_names() -> list[str]:
-    from suite.scene import list_scenes
+    from suite.core.scene import list_scenes
 
     return list(list_scenes())
 
 
 def make_tracer(backend: str, scene):
-    from suite.trace import make
+    from suite.core.trace import make
 
     return make(backend, scene)
 
 
 def backend_names() -> list[str]:
-    from suite.trace import list_backends
+    from suite.core.trace import list_backends
 
     return list(list_backends())
 
@@ -99,25 +99,25 @@ def net_profiles() -> dict[str, str]:
 
 
 def reference_image(scene, t_s: float, resolution, spp: int, max_depth: int) -> np.ndarray:
-    from suite.reference import path_reference
+    from suite.core.reference import path_reference
 
     return path_reference(scene, t_s, resolution=tuple(resolution), spp=spp, max_depth=max_depth)
 
 
 def compare_images(ref, test, exposure: float) -> dict:
-    from suite.metrics import compare
+    from suite.core.metrics import compare
 
     return compare(ref, test, exposure=exposure)
 
 
 def write_exr(path, img) -> None:
-    from suite.imageio import write_exr as _write
+    from suite.core.imageio import write_exr as _write
 
     _write(path, img)
 
 
 def write_png(path, img, exposure: float) -> None:
-    from suite.imageio import write_png as _write
+    from suite.core.imageio import write_png as _write
 
     _write(path, img, exposure=exposure)
 

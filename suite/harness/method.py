@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from suite.timeline import Group
+from suite.harness.timeline import Group
 
 
 class Method:

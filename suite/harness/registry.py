@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from suite.errors import UserError
-from suite.method import Method
+from suite.harness.method import Method
 
-METHODS_DIR = Path(__file__).resolve().parent.parent / "methods"
+METHODS_DIR = Path(__file__).resolve().parents[2] / "methods"
 PRESETS = ("smoke", "quick", "full")
 RESERVED_PARAMS = ("client_fps", "update_fps", "max_in_flight")
 

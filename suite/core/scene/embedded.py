@@ -21,8 +21,8 @@ from typing import Callable
 
 import numpy as np
 
-from suite.scene.builder import CameraScript, SceneBuilder
-from suite.scene.model import CameraKey, CameraPath, Scene
+from suite.core.scene.builder import CameraScript, SceneBuilder
+from suite.core.scene.model import CameraKey, CameraPath, Scene
 
 DEFAULT_RESOLUTION = (320, 180)
 DEFAULT_FPS = 30.0
@@ -453,8 +453,8 @@ def cornell_camera_path() -> CameraPath:
 
 def _cornell() -> Scene:
     """Mitsuba's cornell_box(): a closed box with one area light, two blocks; a gentle orbit and dolly."""
-    from suite.env import mitsuba
-    from suite.scene.mitsuba_io import load_mitsuba
+    from suite.core.env import mitsuba
+    from suite.core.scene.mitsuba_io import load_mitsuba
 
     mi = mitsuba("llvm")
     return load_mitsuba(mi.cornell_box(), name="cornell", camera_path=cornell_camera_path())

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from suite.trace.base import Tracer
+from suite.core.trace.base import Tracer
 
 
 def _embree_modules():

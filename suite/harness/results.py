@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 SCHEMA_VERSION = 1
-REPO_DIR = Path(__file__).resolve().parent.parent
+REPO_DIR = Path(__file__).resolve().parents[2]
 # Versions that can change results; recorded in config.json and part of the run key.
 PACKAGES = ("splitbench", "numpy", "mitsuba", "drjit", "embreex", "OpenImageIO", "scikit-image",
             "colour-science", "flip-evaluator", "pandas", "pyarrow", "lz4", "zstandard", "python-lzo")

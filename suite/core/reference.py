@@ -7,7 +7,7 @@ Two references exist for a scene at time ``t_s`` and a resolution:
 - :func:`direct_reference`: Mitsuba's ``direct`` integrator (emitters seen directly plus one bounce of direct
   lighting), the ground truth for the direct-lighting methods.
 
-The scene goes to Mitsuba through :func:`suite.scene.mitsuba_io.to_mitsuba_dict` with a box pixel filter, so
+The scene goes to Mitsuba through :func:`suite.core.scene.mitsuba_io.to_mitsuba_dict` with a box pixel filter, so
 the renderer sees exactly our triangles, materials, lights, animation state and camera pose.
 
 Rendering happens in *passes*: ``spp`` samples per pixel are split over ``passes`` renders with different
@@ -39,7 +39,7 @@ from typing import Callable
 import numpy as np
 
 from suite.errors import UserError
-from suite.imageio import atomic_target, read_exr, write_exr
+from suite.core.imageio import atomic_target, read_exr, write_exr
 
 # Bump when the meaning of cached files changes (file layout, pass/seed scheme); old entries then miss.
 REFERENCE_FORMAT_VERSION = 1
@@ -136,7 +136,7 @@ def render_with_stderr(scene_dict: dict, spp: int, passes: int | None = None, se
     Filters that splat a sample into several pixels (Mitsuba's default ``gaussian``) accumulate across threads
     in varying order, so repeated renders then differ in the last bits (relative 1e-7).
     """
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     spp = int(spp)
     if spp < 1:
@@ -208,7 +208,7 @@ def _canonical(value, field_name: str = "value"):
 
 
 def scene_digest(scene) -> str:
-    """SHA-256 over every field of a :class:`suite.scene.Scene` (arrays by content)."""
+    """SHA-256 over every field of a :class:`suite.core.scene.Scene` (arrays by content)."""
     return _sha256_json(_canonical(scene))
 
 
@@ -219,9 +219,9 @@ def _sha256_json(obj) -> str:
 
 def _converter_digest() -> str:
     # A change in how scenes become Mitsuba dicts changes what Mitsuba renders, so it must change the key.
-    spec = importlib.util.find_spec("suite.scene.mitsuba_io")
+    spec = importlib.util.find_spec("suite.core.scene.mitsuba_io")
     if spec is None or not spec.origin:
-        raise UserError("suite.scene.mitsuba_io is missing; references need it to export scenes to Mitsuba")
+        raise UserError("suite.core.scene.mitsuba_io is missing; references need it to export scenes to Mitsuba")
     return hashlib.sha256(Path(spec.origin).read_bytes()).hexdigest()
 
 
@@ -238,7 +238,7 @@ def cache_dir() -> Path:
 
 def _render_description(description: dict, spp: int, passes: int, seed: int, variant: str) -> dict:
     """``description`` plus everything about the render itself that changes its pixels."""
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     mi = mitsuba(variant)
     return {**description, "format": REFERENCE_FORMAT_VERSION, "spp": int(spp), "passes": int(passes),
@@ -330,7 +330,7 @@ def _integrator(kind: str, max_depth: int | None) -> dict:
 
 
 def _reference_inputs(scene, t_s, resolution, spp, integrator, passes):
-    from suite.scene import load
+    from suite.core.scene import load
 
     scene = load(scene)
     resolution = _resolve_resolution(scene, resolution)
@@ -349,8 +349,8 @@ def scene_reference(scene, t_s: float = 0.0, resolution=None, spp: int = 256, in
     ``resolution`` is (W, H), default the scene camera's; ``integrator`` a Mitsuba integrator dict, default
     ``{"type": "path", "max_depth": 8}``.
     """
-    from suite.env import resolve_variant
-    from suite.scene.mitsuba_io import to_mitsuba_dict
+    from suite.core.env import resolve_variant
+    from suite.core.scene.mitsuba_io import to_mitsuba_dict
 
     integrator = dict(integrator or _integrator("path", 8))
     scene, resolution, spp, passes, description = _reference_inputs(scene, t_s, resolution, spp, integrator,
@@ -367,7 +367,7 @@ def scene_reference(scene, t_s: float = 0.0, resolution=None, spp: int = 256, in
 def reference_path_for(scene, t_s: float = 0.0, resolution=None, spp: int = 256, integrator: dict | None = None,
                        seed: int = 0, variant: str = "auto", passes: int | None = None) -> Path:
     """Where :func:`scene_reference` with the same arguments stores (or finds) its mean EXR."""
-    from suite.env import resolve_variant
+    from suite.core.env import resolve_variant
 
     integrator = dict(integrator or _integrator("path", 8))
     _, _, spp, passes, description = _reference_inputs(scene, t_s, resolution, spp, integrator, passes)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 
-from suite import registry, runner
+from suite.harness import registry, runner
 from suite.errors import UserError
 
 # Reference spp of each preset unless its table sets reference_spp: enough to rank methods at that resolution

@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from suite.trace.robust import offset_ray_origin
+from suite.core.trace.robust import offset_ray_origin
 
 INV_PI = 1.0 / np.pi
 # The visibility pass works on about PIPELINE_CHUNKS chunks of at least PIPELINE_MIN_CHUNK pixels.
@@ -41,11 +41,11 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
     saves work and makes the bit independent of how a ray grazing the surface's own triangle is resolved.
 
     Rays start at ``offset_ray_origin`` of the position (float64), point at the light (float64 direction rounded
-    to float32) and stop ``SHADOW_TMAX_SCALE`` short of it. A compiled kernel (:mod:`suite.trace.raygen`) writes
+    to float32) and stop ``SHADOW_TMAX_SCALE`` short of it. A compiled kernel (:mod:`suite.core.trace.raygen`) writes
     them straight into the tracer's frame, light by light, at most ``chunk_rays`` pixels at a time; the next
     light's rays are generated while the backend traces the current light's.
     """
-    from suite.trace.raygen import ShadowRays
+    from suite.core.trace.raygen import ShadowRays
 
     h, w = g.depth.shape
     n_lights = len(lights)

@@ -1,7 +1,7 @@
 """Mitsuba / Dr.Jit set-up: one place that picks the libLLVM and the variant.
 
 Import Mitsuba through :func:`mitsuba` rather than ``import mitsuba`` so that ``DRJIT_LIBLLVM_PATH``
-is set before Dr.Jit loads (see :mod:`suite.llvm`).
+is set before Dr.Jit loads (see :mod:`suite.core.llvm`).
 
 Variants: ``llvm`` → ``llvm_ad_rgb`` (CPU, the default), ``cuda`` → ``cuda_ad_rgb`` (when a GPU is present),
 ``scalar`` → ``scalar_rgb`` (last resort, slow; only when asked for by name). ``auto`` picks cuda when a GPU is
@@ -14,7 +14,7 @@ import subprocess
 import sys
 
 from suite.errors import UserError
-from suite.llvm import LLVMNotFound, configure_drjit_llvm
+from suite.core.llvm import LLVMNotFound, configure_drjit_llvm
 
 VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb", "scalar": "scalar_rgb"}
 

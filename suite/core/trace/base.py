@@ -8,7 +8,7 @@ Every backend answers two queries on numpy arrays of float32 rays:
 
 ``tmin`` and ``tmax`` may be scalars or per-ray arrays. Neither backend supports a per-ray ``tmin`` natively
 (embreex fixes ``tnear`` at 0), so the origin is advanced by ``tmin`` along the ray and ``t`` is shifted back.
-Robust shadow-ray origins are the caller's job (see :func:`suite.trace.robust.offset_ray_origin`).
+Robust shadow-ray origins are the caller's job (see :func:`suite.core.trace.robust.offset_ray_origin`).
 
 Backends trace in a frame centred on the scene's bounding box: geometry and ray origins are shifted by the
 box centre in float64 before they become float32. A scene far from the origin then gets the precision of a
@@ -152,7 +152,7 @@ class Tracer:
         ``soa_origins`` else (N, 3)), unit float32 directions (N, 3), lengths in [0, MAX_RAY_LENGTH].
 
         For ray generators that write rays in the backend's frame and layout directly
-        (:mod:`suite.trace.raygen`); everything else should call :meth:`occluded`.
+        (:mod:`suite.core.trace.raygen`); everything else should call :meth:`occluded`.
         """
         n = len(d)
         self.counters["rays_occluded"] += n

@@ -1,6 +1,6 @@
 """Mitsuba 3 scenes in and out.
 
-``load_mitsuba`` turns a Mitsuba scene (XML file or dict) into a :class:`~suite.scene.model.Scene`; it goes
+``load_mitsuba`` turns a Mitsuba scene (XML file or dict) into a :class:`~suite.core.scene.model.Scene`; it goes
 through Mitsuba's own loader, so anything Mitsuba can read as a triangle mesh works. ``to_mitsuba_dict``
 writes any Scene back as a Mitsuba dict, so the reference renderer sees exactly the geometry, materials and
 lights that the methods trace.
@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from suite.errors import UserError
-from suite.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
+from suite.core.scene.model import CameraKey, CameraPath, Material, PointLight, Scene
 
 SUPPORTED_BSDFS = ("diffuse", "twosided")
 DEFAULT_SPHERE_RESOLUTION = 32  # segments around; rings = resolution / 2
@@ -41,7 +41,7 @@ def _plugin_name(obj) -> str:
 
 
 def _load_mitsuba_object(source):
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     mi = mitsuba("llvm") if os.environ.get("SPLITBENCH_MI_VARIANT") is None else mitsuba(os.environ["SPLITBENCH_MI_VARIANT"])
     if isinstance(source, dict):
@@ -258,7 +258,7 @@ def _look_at(mi, pose):
 
 
 def sensor_dict(mi, scene: Scene, t_s: float, resolution, spp: int, rfilter: str = "box") -> dict:
-    """A perspective sensor matching ``suite.gbuffer.camera_rays`` (horizontal FOV, pixel-centre grid).
+    """A perspective sensor matching ``suite.core.gbuffer.camera_rays`` (horizontal FOV, pixel-centre grid).
 
     The box filter makes each pixel the average over its own footprint, which is what pixel-centre
     methods approximate; Mitsuba's default Gaussian would blur across pixels.
@@ -285,7 +285,7 @@ def to_mitsuba_dict(scene: Scene, t_s: float = 0.0, resolution=None, integrator=
     room seen from inside must not depend on winding). Emissive groups carry an ``area`` emitter with the
     material's radiance; point lights become ``point`` emitters with their intensity (W/sr).
     """
-    from suite.env import mitsuba
+    from suite.core.env import mitsuba
 
     mi = mitsuba(variant)
     resolution = tuple(resolution or scene.camera.resolution)

@@ -6,7 +6,7 @@ row 0 at the top. On disk:
 - ``write_exr`` stores 32-bit float channels (lossless ZIP compression), so ``read_exr`` returns exactly the
   float32 values that were written. Channel names: ``Y`` (1), ``R G B`` (3), ``R G B A`` (4), ``R G B A`` plus
   numbered extras otherwise.
-- ``write_png`` stores 8-bit sRGB after the display transform of :func:`suite.metrics.to_display`, so a PNG shows
+- ``write_png`` stores 8-bit sRGB after the display transform of :func:`suite.core.metrics.to_display`, so a PNG shows
   exactly what the metrics see.
 
 Both writers are atomic: they write a temporary file in the destination's directory and ``os.replace`` it over
@@ -166,10 +166,10 @@ def read_exr(path) -> np.ndarray:
 def write_png(path, img_linear, exposure: float = 1.0) -> None:
     """Writes a linear HDR image as an 8-bit sRGB PNG through the metrics' display transform, atomically.
 
-    ``exposure`` is the same linear multiplier as in :func:`suite.metrics.to_display`. One- and three-channel
+    ``exposure`` is the same linear multiplier as in :func:`suite.core.metrics.to_display`. One- and three-channel
     images are supported.
     """
-    from suite.metrics import to_display
+    from suite.core.metrics import to_display
 
     arr = np.asarray(img_linear)
     if arr.ndim == 3 and arr.shape[2] not in (1, 3):

@@ -4,7 +4,7 @@ Generating a shadow ray is a handful of float operations per pixel and light; in
 over memory, and ray generation cost more than Embree's tracing of the rays. Two compiled loops write the rays
 straight into the tracer's frame and layout: one offsets the origins once per pixel (they do not depend on the
 light), one makes each light's rays. Per ray they perform exactly the float64/float32 operations of the
-reference formulation (``suite.trace.robust.offset_ray_origin``, a float64 direction rounded to float32,
+reference formulation (``suite.core.trace.robust.offset_ray_origin``, a float64 direction rounded to float32,
 ``dist * tmax_scale``), in the same order, so rays and visibility bits are identical to it
 (tests/methods/visibility_bitmap/test_visibility_pass.py).
 """
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from suite.trace.robust import FLOAT_SCALE, OFFSET_ULPS
+from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 
 def _origins_kernel(positions, normals, pixels, shift, offset_ulps, float_scale, origin64, origin_local, soa):

@@ -2,13 +2,13 @@
 
 Builds a Mitsuba scene with one mesh for static geometry and one for animated objects (so an update
 re-uploads only moving vertices). Variants: ``llvm_ad_rgb`` on CPU, ``cuda_ad_rgb`` on a GPU, ``scalar_rgb``
-as a last resort (see :mod:`suite.env`). Mitsuba rays have no ``tmin``: the base class advances origins.
+as a last resort (see :mod:`suite.core.env`). Mitsuba rays have no ``tmin``: the base class advances origins.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from suite.trace.base import Tracer, split_static_dynamic
+from suite.core.trace.base import Tracer, split_static_dynamic
 
 
 class MitsubaTracer(Tracer):
@@ -18,7 +18,7 @@ class MitsubaTracer(Tracer):
 
     def __init__(self, scene, variant: str = "auto"):
         super().__init__(scene)
-        from suite.env import mitsuba
+        from suite.core.env import mitsuba
 
         self.mi = mi = mitsuba(variant)
         self.variant = mi.variant()

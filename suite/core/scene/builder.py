@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from suite.errors import UserError
-from suite.scene.model import (CameraKey, CameraPath, LightAnimation, Material, PointLight, RigidAnimation,
+from suite.core.scene.model import (CameraKey, CameraPath, LightAnimation, Material, PointLight, RigidAnimation,
                                Scene)
 
 BOX_FACES = ("-x", "+x", "-y", "+y", "-z", "+z")

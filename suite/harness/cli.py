@@ -37,14 +37,14 @@ def _check_writable_dir(path, what: str = "--out") -> Path:
 
 
 def _print_json(obj) -> None:
-    from suite.results import _jsonable
+    from suite.harness.results import _jsonable
 
     print(json.dumps(_jsonable(obj), indent=2, sort_keys=True))
 
 
 def _parse_set_grid(items) -> dict[str, list]:
     """``--set key=value`` items as {key: [values...]}: a key given more than once spans a grid."""
-    from suite.registry import parse_set_value
+    from suite.harness.registry import parse_set_value
 
     values: dict[str, list] = {}
     for item in items or []:
@@ -65,7 +65,7 @@ def _parse_sets(items) -> dict:
 # ---------------------------------------------------------------------------------------------------- list
 
 def cmd_list(args) -> int:
-    from suite import registry, runner
+    from suite.harness import registry, runner
 
     methods = {}
     for name, spec in registry.discover().items():
@@ -93,13 +93,13 @@ def cmd_list(args) -> int:
 
 
 def _scenes():
-    from suite.scene import list_scenes
+    from suite.core.scene import list_scenes
 
     return list_scenes()
 
 
 def _backends():
-    from suite.trace import list_backends
+    from suite.core.trace import list_backends
 
     return list_backends()
 
@@ -118,7 +118,7 @@ def cmd_run(args) -> int:
     goes through the executor (serial, local processes or Dask)."""
     import itertools
 
-    from suite import executor, runner
+    from suite.harness import executor, runner
 
     options = {}
     if args.reference_spp is not None:
@@ -187,8 +187,8 @@ def format_summary(out: dict) -> str:
 # ----------------------------------------------------------------------------------------- reference, compare
 
 def cmd_reference(args) -> int:
-    from suite import runner
-    from suite.imageio import write_exr
+    from suite.harness import runner
+    from suite.core.imageio import write_exr
 
     out = Path(args.out)
     if out.suffix.lower() != ".exr":
@@ -211,8 +211,8 @@ def cmd_reference(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from suite.imageio import read_exr
-    from suite.metrics import compare
+    from suite.core.imageio import read_exr
+    from suite.core.metrics import compare
 
     images = []
     for path in (args.ref, args.test):
@@ -242,7 +242,7 @@ def cmd_bench(args) -> int:
 
 def bench_names() -> list[str]:
     """``tracing`` plus every method folder that ships a bench.py."""
-    from suite import registry
+    from suite.harness import registry
 
     return ["tracing"] + [n for n, spec in registry.discover().items() if (spec.path / "bench.py").is_file()]
 
@@ -253,7 +253,7 @@ def _method_bench(name: str):
     import importlib
     import importlib.util
 
-    from suite import registry
+    from suite.harness import registry
 
     spec = registry.discover().get(name)
     file = spec.path / "bench.py" if spec is not None else None
@@ -271,7 +271,7 @@ def _method_bench(name: str):
 
 
 def _bench_tracing(argv) -> int:
-    from suite import runner
+    from suite.harness import runner
 
     p = _Parser(prog=f"{PROG} bench tracing", description="suite vs raw backend rays/s and their ratio")
     p.add_argument("--scene", default="cornell")
@@ -279,7 +279,7 @@ def _bench_tracing(argv) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     try:
-        from suite.trace import bench
+        from suite.core.trace import bench
     except ImportError as exc:
         raise UserError(f"the tracing benchmark is not available in this installation ({exc})") from None
 
@@ -303,7 +303,7 @@ def _bench_tracing(argv) -> int:
 # -------------------------------------------------------------------------------------------------- reproduce
 
 def cmd_reproduce(args) -> int:
-    from suite import executor, presets
+    from suite.harness import executor, presets
 
     configs, problems = presets.configs(args.preset, methods=args.methods)
     results_dir = _check_writable_dir(args.out)
@@ -345,7 +345,7 @@ def cmd_report(args) -> int:
 # ------------------------------------------------------------------------------------------------------ parser
 
 def build_parser() -> argparse.ArgumentParser:
-    from suite.executor import EXECUTORS
+    from suite.harness.executor import EXECUTORS
 
     p = _Parser(prog=PROG, description="Offline benchmark suite for split/remote rendering pipelines.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
