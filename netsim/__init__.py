@@ -5,6 +5,12 @@
     d = net.send(300_000, direction="down", protocol="tcp", at_s=0.0)
     d.arrival_s, d.delivered_bytes, d.lost_ranges, d.retransmissions, d.complete
 
+    topo = netsim.make_topology(access="lan-home", server="bw=100mbps,delay=5ms", clients=3, seed=0)
+    d = topo.send(100_000, client=1, direction="down", protocol="tcp", at_s=0.25)   # same Delivery, tentative
+    topo.advance(0.25)                               # promise: no later send has at_s < 0.25
+
+Bad settings raise netsim.NetsimError (a ValueError) with a one-line message.
+
 See docs/netsim.md for the model, the profiles and the validation against ns-3.
 """
 
@@ -16,6 +22,8 @@ _EXPORTS = {
     "Delivery": "netsim.network", "Network": "netsim.network", "make_network": "netsim.network",
     "LinkConfig": "netsim.config", "NetworkConfig": "netsim.config", "TcpConfig": "netsim.config",
     "UdpConfig": "netsim.config", "parse_spec": "netsim.config", "list_profiles": "netsim.profiles",
+    "NetsimError": "netsim.errors", "Topology": "netsim.topology", "make_topology": "netsim.topology",
+    "derive_seed": "netsim.topology", "server_seed": "netsim.topology",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -1,16 +1,35 @@
 """``splitbench netsim`` commands: ``transfer`` (one message through a simple path) and ``validate`` (ns-3).
 
 The lead's CLI mounts them with ``netsim.cli.register(subparsers)``; ``python -m netsim ...`` runs them alone.
+Either way a :class:`~netsim.errors.NetsimError` is printed as one line on stderr and the command exits with
+status 2: the command functions handle it themselves, so a parent CLI needs to know nothing about netsim's errors.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
 
-from suite.errors import UserError
+from netsim.errors import NetsimError
+
+PROG = "netsim"
+
+
+def _one_line_errors(command):
+    """Run a command; a NetsimError becomes ``netsim: error: <message>`` on stderr and exit status 2."""
+
+    @functools.wraps(command)
+    def run(args) -> int:
+        try:
+            return command(args)
+        except NetsimError as error:
+            print(f"{PROG}: error: {error}", file=sys.stderr)
+            return NetsimError.exit_code
+
+    return run
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -42,16 +61,17 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def _check_loss(loss: float) -> float:
     if not 0 <= loss < 1:
-        raise UserError(f"--loss must be in [0, 1), got {loss}")
+        raise NetsimError(f"--loss must be in [0, 1), got {loss}")
     return loss
 
 
+@_one_line_errors
 def cmd_transfer(args) -> int:
     import netsim
 
     _check_loss(args.loss)
     if args.rtt_ms < 0 or not math.isfinite(args.rtt_ms):
-        raise UserError(f"--rtt-ms must be a finite number >= 0, got {args.rtt_ms}")
+        raise NetsimError(f"--rtt-ms must be a finite number >= 0, got {args.rtt_ms}")
     spec = {"bw": args.bandwidth_mbps, "delay": args.rtt_ms / 2, "loss": args.loss, "cc": args.cc}
     net = netsim.make_network(spec, seed=args.seed)
     delivery = net.send(args.size_bytes, direction="down", protocol=args.protocol, at_s=0.0)
@@ -71,11 +91,12 @@ def cmd_transfer(args) -> int:
     return 0
 
 
+@_one_line_errors
 def cmd_validate(args) -> int:
     from netsim import validate
 
     if not validate.ns3_available():
-        raise UserError("ns-3 is not installed: pip install 'splitbench[ns3]' (package ns3 >= 3.44, Linux x86_64, "
+        raise NetsimError("ns-3 is not installed: pip install 'splitbench[ns3]' (package ns3 >= 3.44, Linux x86_64, "
                         "needs a C++ compiler) to run netsim validate")
     progress = None if args.json else (lambda line: print(line, flush=True))
     rows, summary = validate.compare(quick=args.quick, progress=progress)
@@ -97,8 +118,4 @@ def main(argv=None) -> int:
     # Without the outer command name: python -m netsim transfer ... == splitbench netsim transfer ...
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(["netsim", *argv])
-    try:
-        return args.func(args)
-    except UserError as error:
-        print(f"splitbench: error: {error}", file=sys.stderr)
-        return UserError.exit_code
+    return args.func(args)

@@ -2,7 +2,7 @@
 profile names, inline specs (``"bw=50mbps,delay=17ms,loss=0.1%"``) and plain dicts.
 
 Every impossible setting (zero or negative bandwidth, loss >= 1, an MTU too small for the headers, ...) raises
-:class:`suite.errors.UserError` with a one-line message naming the setting, so that nothing downstream can hang.
+:class:`netsim.errors.NetsimError` with a one-line message naming the setting, so that nothing downstream can hang.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from suite.errors import UserError
+from netsim.errors import NetsimError
 
 # IPv4 (20) + TCP (20) without options; the same header ns-3 puts on a segment when timestamps are off.
 TCP_HEADER_BYTES = 40
@@ -216,7 +216,7 @@ def _is_number(value) -> bool:
 
 def _check(condition: bool, message: str) -> None:
     if not condition:
-        raise UserError(message)
+        raise NetsimError(message)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -246,11 +246,11 @@ _UDP_KEYS = {"pacing": "pacing_mbps", "burst": "burst", "nack": "nack_rounds", "
 def _parse_number(text: str, units: dict, what: str) -> float:
     match = _UNIT_RE.match(str(text))
     if not match:
-        raise UserError(f"cannot read {what} value {text!r}")
+        raise NetsimError(f"cannot read {what} value {text!r}")
     number = float(match.group(1))
     unit = match.group(2).lower()
     if unit not in units:
-        raise UserError(f"unknown unit {match.group(2)!r} in {what} value {text!r} "
+        raise NetsimError(f"unknown unit {match.group(2)!r} in {what} value {text!r} "
                         f"(use one of {', '.join(u for u in units if u)})")
     return number * units[unit]
 
@@ -261,7 +261,7 @@ def _parse_bool(text: str, what: str) -> bool:
         return True
     if lowered in ("0", "false", "no", "off"):
         return False
-    raise UserError(f"{what} must be on/off, got {text!r}")
+    raise NetsimError(f"{what} must be on/off, got {text!r}")
 
 
 def _link_value(field_name: str, text, mtu_bytes: int):
@@ -278,7 +278,7 @@ def _link_value(field_name: str, text, mtu_bytes: int):
     if field_name in ("mtu_bytes", "link_overhead_bytes"):
         value = _parse_number(text, {"": 1.0, "b": 1.0}, field_name)
         if value != int(value):
-            raise UserError(f"{field_name} must be a whole number of bytes, got {text!r}")
+            raise NetsimError(f"{field_name} must be a whole number of bytes, got {text!r}")
         return int(value)
     if field_name == "queue_bytes":
         match = _UNIT_RE.match(text)
@@ -301,7 +301,7 @@ def _other_value(field_name: str, text):
     if field_name in ("initial_window_segments", "nack_rounds", "fec_k", "fec_r"):
         value = _parse_number(text, {"": 1.0}, field_name)
         if value != int(value):
-            raise UserError(f"{field_name} must be a whole number, got {text!r}")
+            raise NetsimError(f"{field_name} must be a whole number, got {text!r}")
         return int(value)
     if field_name in ("min_rto_ms", "initial_rto_ms"):
         return _parse_number(text, _TIME_UNITS, field_name)
@@ -348,12 +348,12 @@ def apply_settings(base: NetworkConfig, settings: dict) -> NetworkConfig:
         elif key in ("name", "max_sim_time_s"):
             top[key] = value if key == "name" else float(value)
         else:
-            raise UserError(f"unknown network setting {raw_key!r}")
+            raise NetsimError(f"unknown network setting {raw_key!r}")
     try:
         config = NetworkConfig(name=top["name"], down=LinkConfig(**down), up=LinkConfig(**up),
                                tcp=TcpConfig(**tcp), udp=UdpConfig(**udp), max_sim_time_s=top["max_sim_time_s"])
     except TypeError as error:  # a value of the wrong type reached a dataclass
-        raise UserError(f"invalid network setting: {error}") from None
+        raise NetsimError(f"invalid network setting: {error}") from None
     return config.validate()
 
 
@@ -373,7 +373,7 @@ def parse_spec(spec) -> NetworkConfig:
         base = profile_config(base_name) if base_name else NetworkConfig(name="custom")
         return apply_settings(base, settings)
     if not isinstance(spec, str) or not spec.strip():
-        raise UserError(f"network spec must be a profile name, an inline spec or a dict, got {spec!r}")
+        raise NetsimError(f"network spec must be a profile name, an inline spec or a dict, got {spec!r}")
     text = spec.strip()
     if text in PROFILES:
         return profile_config(text)
@@ -385,7 +385,7 @@ def parse_spec(spec) -> NetworkConfig:
     settings = {}
     for part in parts:
         if "=" not in part:
-            raise UserError(f"network spec item {part!r} is not key=value (in {spec!r})")
+            raise NetsimError(f"network spec item {part!r} is not key=value (in {spec!r})")
         key, value = part.split("=", 1)
         settings[key.strip()] = value.strip()
     config = apply_settings(base, settings)

@@ -18,6 +18,7 @@ Example::
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -73,6 +74,15 @@ class RandomStream:
         self._rng.bit_generator.state = state[0]
         self._block = list(state[1])
         self._index = state[2]
+
+    def copy(self) -> "RandomStream":
+        """An independent stream that continues with the same numbers (blocks are never modified in place, so
+        the current one is shared)."""
+        other = RandomStream.__new__(RandomStream)
+        other._rng = copy.deepcopy(self._rng)
+        other._block = self._block
+        other._index = self._index
+        return other
 
 
 class Link:
@@ -210,42 +220,66 @@ class Link:
         rate = self.rate_bytes_per_s
         if self.overhead_bytes:
             wire_bytes = wire_bytes + self.overhead_bytes
-        tx_s = wire_bytes / rate
-        cum_tx_s = np.cumsum(tx_s)
-        # FIFO recurrence d_i = max(s_i, d_{i-1}) + tx_i, unrolled: d_i = C_i + max(busy, max_k<=i (s_k - C_{k-1})).
-        start_term = np.maximum.accumulate(np.maximum(send_s - (cum_tx_s - tx_s), self.busy_until_s))
-        depart_s = cum_tx_s + start_term
-        previous_depart_s = np.empty(count)
-        previous_depart_s[0] = self.busy_until_s
-        previous_depart_s[1:] = depart_s[:-1]
-        problem = (np.maximum(previous_depart_s - send_s, 0.0) * rate + wire_bytes) > self._queue_limit_bytes
+        tx_s = (wire_bytes / rate).tolist()  # IEEE division: the same numbers transmit() computes
+        sends = send_s.tolist()
+        wires = wire_bytes.tolist()
+        # The FIFO recurrence d_i = max(s_i, d_{i-1}) + tx_i, with the drop-tail test of transmit(), in the same
+        # floating-point operations as transmit() so that both paths give bit-identical times (an unrolled numpy
+        # form, cumulative sums and maxima, differs in the last bits, and a replayed busy period that switches
+        # between the paths would then move an earlier message).
+        limit = self._queue_limit_bytes
+        busy = self.busy_until_s
+        depart = []
+        first_problem = count
+        for i in range(count):
+            t = sends[i]
+            if busy > t:
+                if (busy - t) * rate + wires[i] > limit:
+                    first_problem = i
+                    break
+                busy = busy + tx_s[i]
+            else:
+                busy = t + tx_s[i]
+            depart.append(busy)
         if self._loss > 0:
-            problem |= self._loss_stream.peek(count) < self._loss
+            lost = self._loss_stream.peek(count) < self._loss
+            if lost.any():
+                first_problem = min(first_problem, int(np.argmax(lost)))
         if self.scripted_losses:
             for number in self.scripted_losses:
                 if self.packets_offered <= number < self.packets_offered + count:
-                    problem[number - self.packets_offered] = True
-        if problem.any():
-            return None, int(np.argmax(problem))
-        arrive_s = depart_s + self.delay_s
-        if self._jitter_kind != "none":
-            if self._jitter_kind == "exponential":
-                arrive_s += -self.jitter_s * np.log1p(-self._jitter_stream.peek(count))
-                self._jitter_stream.skip(count)
-            elif self._jitter_kind == "uniform":
-                arrive_s += self.jitter_s * 2.0 * self._jitter_stream.peek(count)
-                self._jitter_stream.skip(count)
-            else:
-                pairs = self._jitter_stream.peek(2 * count)
+                    first_problem = min(first_problem, number - self.packets_offered)
+        if first_problem < count:
+            return None, first_problem
+        delay = self.delay_s
+        kind = self._jitter_kind
+        if kind == "none":
+            arrive = [d + delay for d in depart]
+        else:
+            jitter_s = self.jitter_s
+            if kind == "normal":
+                pairs = self._jitter_stream.peek(2 * count).tolist()
                 self._jitter_stream.skip(2 * count)
-                z = np.sqrt(-2.0 * np.log1p(-pairs[0::2])) * np.cos(2.0 * np.pi * pairs[1::2])
-                arrive_s += np.maximum(0.0, self.jitter_s * z)
+                # transmit()'s Box-Muller, number for number.
+                extra = [max(0.0, jitter_s * (math.sqrt(-2.0 * math.log(1.0 - pairs[2 * i]))
+                                              * math.cos(2.0 * math.pi * pairs[2 * i + 1])))
+                         for i in range(count)]
+            else:
+                draws = self._jitter_stream.peek(count).tolist()
+                self._jitter_stream.skip(count)
+                if kind == "exponential":
+                    extra = [-jitter_s * math.log(1.0 - u) for u in draws]
+                else:
+                    extra = [jitter_s * u * 2.0 for u in draws]
+            arrive = [d + delay + e for d, e in zip(depart, extra)]
+        arrive_s = np.array(arrive)
+        depart_s = depart
         if True:  # the vectorised path serves TCP, which this model keeps in order (docs/netsim.md)
             arrive_s = np.maximum.accumulate(np.maximum(arrive_s, self.last_arrival_s))
             self.last_arrival_s = float(arrive_s[-1])
         if self._loss > 0:
             self._loss_stream.skip(count)
-        self.busy_until_s = float(depart_s[-1])
+        self.busy_until_s = depart_s[-1]
         self.packets_offered += count
         self.packets_sent += count
         self.bytes_sent += int(wire_bytes.sum())
@@ -269,6 +303,16 @@ class Link:
         return (self.busy_until_s, self.last_arrival_s, self.ge_bad, self._trace_bytes_served, self.last_user,
                 self.packets_offered, self.packets_sent, self.packets_dropped_queue, self.packets_lost,
                 self.bytes_sent, self._loss_stream.state(), self._jitter_stream.state())
+
+    def copy(self) -> "Link":
+        """An independent link in the same state (queue, loss and jitter streams, counters): the topology engine
+        checkpoints a simulation by copying its links."""
+        other = copy.copy(self)
+        other.out = list(self.out)
+        other.scripted_losses = set(self.scripted_losses)
+        other._loss_stream = self._loss_stream.copy()
+        other._jitter_stream = self._jitter_stream.copy()
+        return other
 
     def restore(self, state) -> None:
         (self.busy_until_s, self.last_arrival_s, self.ge_bad, self._trace_bytes_served, self.last_user,

@@ -13,8 +13,9 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass, field
+from typing import Callable
 
-from suite.errors import UserError
+from netsim.errors import NetsimError
 from netsim.config import NetworkConfig, parse_spec
 from netsim.env import Environment
 from netsim.link import Link
@@ -42,29 +43,38 @@ class Delivery:
     deadline_s: float | None = None
     _message: Message | None = field(default=None, repr=False)
 
+    # Set by a Topology, whose results are tentative until later sends can no longer change them: brings the
+    # message's results up to date before they are read. None for a Network (results are final when returned).
+    _resolve: Callable[[Message], None] | None = field(default=None, repr=False, compare=False)
+
+    def _result(self) -> Message:
+        if self._resolve is not None:
+            self._resolve(self._message)
+        return self._message
+
     @property
     def arrival_s(self) -> float:
-        return self._message.arrival_s
+        return self._result().arrival_s
 
     @property
     def settled_s(self) -> float:
-        return self._message.settled_s
+        return self._result().settled_s
 
     @property
     def delivered_bytes(self) -> int:
-        return self._message.delivered_bytes
+        return self._result().delivered_bytes
 
     @property
     def lost_ranges(self) -> list[tuple[int, int]]:
-        return list(self._message.lost_ranges)
+        return list(self._result().lost_ranges)
 
     @property
     def retransmissions(self) -> int:
-        return self._message.retransmissions
+        return self._result().retransmissions
 
     @property
     def complete(self) -> bool:
-        return self._message.complete
+        return self._result().complete
 
     @property
     def transfer_time_s(self) -> float:
@@ -75,6 +85,26 @@ class Delivery:
                 "sent_s": self.sent_s, "arrival_s": None if math.isinf(self.arrival_s) else self.arrival_s,
                 "delivered_bytes": self.delivered_bytes, "lost_ranges": [list(r) for r in self.lost_ranges],
                 "retransmissions": self.retransmissions, "complete": self.complete}
+
+
+def check_message(size_bytes, direction: str, protocol: str, at_s, deadline_s) -> tuple[int, float, float | None]:
+    """Validate one send's arguments (NetsimError naming the bad one); return (size, at_s, deadline_s) normalised."""
+    if isinstance(size_bytes, bool) or not isinstance(size_bytes, numbers.Integral) and not (
+            isinstance(size_bytes, numbers.Real) and math.isfinite(size_bytes) and float(size_bytes).is_integer()):
+        raise NetsimError(f"message size must be a whole number of bytes, got {size_bytes!r}")
+    size_bytes = int(size_bytes)
+    if size_bytes <= 0:
+        raise NetsimError(f"message size must be > 0 bytes, got {size_bytes}")
+    if direction not in DIRECTIONS:
+        raise NetsimError(f"unknown direction {direction!r} (choose from {', '.join(DIRECTIONS)})")
+    if protocol not in PROTOCOLS:
+        raise NetsimError(f"unknown protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
+    if not isinstance(at_s, numbers.Real) or isinstance(at_s, bool) or not math.isfinite(at_s) or at_s < 0:
+        raise NetsimError(f"send time must be a finite number >= 0 s, got {at_s!r}")
+    if deadline_s is not None and (not isinstance(deadline_s, numbers.Real) or isinstance(deadline_s, bool)
+                                   or not deadline_s > 0):
+        raise NetsimError(f"deadline must be a time budget > 0 s, got {deadline_s!r}")
+    return size_bytes, float(at_s), None if deadline_s is None else float(deadline_s)
 
 
 class Network:
@@ -108,26 +138,11 @@ class Network:
              deadline_s: float | None = None) -> Delivery:
         """Send a message of ``size_bytes`` at ``at_s``. ``deadline_s`` is a time budget after ``at_s``: data that
         arrives later counts as lost."""
-        if isinstance(size_bytes, bool) or not isinstance(size_bytes, numbers.Integral) and not (
-                isinstance(size_bytes, numbers.Real) and math.isfinite(size_bytes) and float(size_bytes).is_integer()):
-            raise UserError(f"message size must be a whole number of bytes, got {size_bytes!r}")
-        size_bytes = int(size_bytes)
-        if size_bytes <= 0:
-            raise UserError(f"message size must be > 0 bytes, got {size_bytes}")
-        if direction not in DIRECTIONS:
-            raise UserError(f"unknown direction {direction!r} (choose from {', '.join(DIRECTIONS)})")
-        if protocol not in PROTOCOLS:
-            raise UserError(f"unknown protocol {protocol!r} (choose from {', '.join(PROTOCOLS)})")
-        if not isinstance(at_s, numbers.Real) or isinstance(at_s, bool) or not math.isfinite(at_s) or at_s < 0:
-            raise UserError(f"send time must be a finite number >= 0 s, got {at_s!r}")
+        size_bytes, at_s, deadline_s = check_message(size_bytes, direction, protocol, at_s, deadline_s)
         if at_s < self._last_at_s:
-            raise UserError(f"send times must not decrease: {at_s} s after {self._last_at_s} s")
-        if deadline_s is not None and (not isinstance(deadline_s, numbers.Real) or not deadline_s > 0):
-            raise UserError(f"deadline must be a time budget > 0 s, got {deadline_s!r}")
+            raise NetsimError(f"send times must not decrease: {at_s} s after {self._last_at_s} s")
         self._last_at_s = at_s
         self.env.now_s = at_s
-        at_s = float(at_s)
-        deadline_s = None if deadline_s is None else float(deadline_s)
         message = Message(size_bytes=size_bytes, at_s=at_s, deadline_s=deadline_s)
         if self.ideal:
             message.arrival_s = message.settled_s = float(at_s)
@@ -159,5 +174,5 @@ class Network:
 def make_network(spec, seed: int = 0) -> Network:
     """A network from a profile name, ``"ideal"``, an inline spec string or a dict (see :func:`parse_spec`)."""
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise UserError(f"seed must be an integer, got {seed!r}")
+        raise NetsimError(f"seed must be an integer, got {seed!r}")
     return Network(parse_spec(spec), seed=int(seed))

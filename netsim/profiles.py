@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from suite.errors import UserError
+from netsim.errors import NetsimError
 from netsim.config import LinkConfig, NetworkConfig, TcpConfig, UdpConfig
 
 _MTU_BYTES = 1500
@@ -92,7 +92,7 @@ def list_profiles() -> dict[str, str]:
 def profile_config(name: str) -> NetworkConfig:
     profiles = _profiles()
     if name not in profiles:
-        raise UserError(f"unknown network profile {name!r} (choose from {', '.join(profiles)}, "
+        raise NetsimError(f"unknown network profile {name!r} (choose from {', '.join(profiles)}, "
                         f"or an inline spec such as 'bw=50mbps,delay=17ms,loss=0.1%')")
     config = profiles[name][1]
     return NetworkConfig(name=config.name, down=config.down, up=config.up, tcp=TcpConfig(), udp=UdpConfig(),

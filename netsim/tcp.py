@@ -527,11 +527,9 @@ class TcpConnection:
             return len(batch)
 
         while una < n:
-            if (vector_ok and not in_recovery and not dupacks and not sacked_count and rcv_nxt == nxt == high_tx
-                    and nxt >= scalar_until_seg and len(ackq) >= 4 and all_available_s <= ackq[0][0] and run_batch(len(ackq))):
-                continue
             if not in_recovery:
-                # Send what the window allows (flight = nxt - una outside recovery).
+                # Send what the window allows (flight = nxt - una outside recovery). This comes before a vectorised
+                # run: the segments the last ACK released leave at that ACK's time, not with the next batch.
                 window = cc.cwnd if cc.cwnd < rwnd_segments else rwnd_segments
                 while nxt < n and nxt - una + 1 <= window and seg_avail_s[nxt] <= t:
                     if sacked[nxt]:
@@ -539,6 +537,9 @@ class TcpConnection:
                         continue
                     send(nxt, t)
                     nxt += 1
+            if (vector_ok and not in_recovery and not dupacks and not sacked_count and rcv_nxt == nxt == high_tx
+                    and nxt >= scalar_until_seg and len(ackq) >= 4 and all_available_s <= ackq[0][0] and run_batch(len(ackq))):
+                continue
             if nxt > una and rto_deadline == math.inf:
                 rto_deadline = t + self.rto_s
 

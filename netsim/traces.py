@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from suite.errors import UserError
+from netsim.errors import NetsimError
 
 TRACE_DIR = Path(__file__).parent / "traces"
 MAHIMAHI_PACKET_BYTES = 1500
@@ -26,7 +26,7 @@ def resolve_trace(text: str) -> str:
     for candidate in (Path(text), TRACE_DIR / text, TRACE_DIR / f"{text}.mahi"):
         if candidate.is_file():
             return str(candidate)
-    raise UserError(f"trace file not found: {text} (bundled: {', '.join(p.name for p in sorted(TRACE_DIR.glob('*.mahi')))})")
+    raise NetsimError(f"trace file not found: {text} (bundled: {', '.join(p.name for p in sorted(TRACE_DIR.glob('*.mahi')))})")
 
 
 def parse_mahimahi(text: str, source: str = "trace") -> np.ndarray:
@@ -39,17 +39,17 @@ def parse_mahimahi(text: str, source: str = "trace") -> np.ndarray:
         try:
             value = int(line)
         except ValueError:
-            raise UserError(f"{source} line {line_number}: expected an integer millisecond timestamp, got {line!r}") from None
+            raise NetsimError(f"{source} line {line_number}: expected an integer millisecond timestamp, got {line!r}") from None
         if value < 0:
-            raise UserError(f"{source} line {line_number}: negative timestamp {value}")
+            raise NetsimError(f"{source} line {line_number}: negative timestamp {value}")
         values.append(value)
     if not values:
-        raise UserError(f"{source}: no delivery opportunities (empty trace)")
+        raise NetsimError(f"{source}: no delivery opportunities (empty trace)")
     times_ms = np.asarray(values, dtype=np.float64)
     if np.any(np.diff(times_ms) < 0):
-        raise UserError(f"{source}: timestamps must be non-decreasing")
+        raise NetsimError(f"{source}: timestamps must be non-decreasing")
     if times_ms[-1] <= 0:
-        raise UserError(f"{source}: the last timestamp must be > 0 ms (it is the period of the loop)")
+        raise NetsimError(f"{source}: the last timestamp must be > 0 ms (it is the period of the loop)")
     return times_ms
 
 
@@ -57,7 +57,7 @@ def load_mahimahi(path: str) -> np.ndarray:
     try:
         text = Path(path).read_text()
     except OSError as error:
-        raise UserError(f"cannot read trace {path}: {error.strerror}") from None
+        raise NetsimError(f"cannot read trace {path}: {error.strerror}") from None
     return parse_mahimahi(text, source=str(path))
 
 

@@ -21,15 +21,15 @@ without running anything:
 ``lights``
     Bytes per frame against light count (the first N lights of ``--lights-scene``), per layout.
 
-Times are wall times on this machine and its backend; they compare parts of one run with each other, not
-machines. ``--loss`` keeps the former UDP loss sweep (printed, not stored).
+Each part records its scene and backend; the document records where it ran as a run's config.json does
+(``packages``, ``host``, ``git``). Times are wall times on this machine and its backend; they compare parts of
+one run with each other, not machines. ``--loss`` keeps the former UDP loss sweep (printed, not stored).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -87,41 +87,44 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
     """UDP loss against image quality: per loss rate and repair policy, the rows repaired and the metrics of
     the distributed frames against the standalone (Algorithm 3A) frames of the same poses.
 
-    The bitmap goes through netsim on ``bw=800mbps,delay=2.5ms,loss=P`` (lan-home's link with loss), under
-    UDP. Only images and bytes are reported here: frame times of lossy UDP runs belong to the harness.
+    The bitmap goes through a netsim topology whose client link is ``bw=800mbps,delay=2.5ms,loss=P``
+    (lan-home's link with loss), under UDP. Only images and bytes are reported here: frame times of lossy UDP runs belong to the harness.
     """
     import netsim
 
     from methods.visibility_bitmap.method import VisibilityBitmap
-    from suite.harness.method import Clock, Context
     from suite.core.metrics import compare
-    from suite.harness.timeline import IdealLink, Timeline
+    from suite.harness.method import ClientCamera, Clock, Context, ServerCamera, scene_view
+    from suite.harness.timeline import Timeline
 
-    def sequence(method, zero_latency, link):
-        timeline = Timeline({"down": link, "up": IdealLink(800.0, 2.5)})
+    def sequence(method, zero_latency, spec):
+        timeline = Timeline(netsim.make_topology(access=spec, seed=seed))
         method.reset()
+        client_scene = scene_view(scene, ClientCamera(scene.camera, 0))
+        server_scene = scene_view(scene, ServerCamera(scene.camera, 0))
         images, infos, prev_t = [], [], None
         for i in range(frames):
             t_s = scene.camera.frame_time_s(i)
-            ctx = Context(timeline.group("frame", i, i / scene.camera.fps), scene=scene, tracer=tracer, t_s=t_s,
-                          prev_t_s=prev_t, resolution=resolution, seed=seed, params=method.params,
-                          zero_latency=zero_latency, protocol="udp", clock=Clock("work"))
+            ctx = Context(timeline.group("frame", i, i / scene.camera.fps), scene=client_scene,
+                          server_scene=server_scene, tracer=tracer, t_s=t_s, prev_t_s=prev_t, resolution=resolution,
+                          seed=seed, params=method.params, zero_latency=zero_latency, protocol="udp",
+                          clock=Clock("work"), outputs=VisibilityBitmap.outputs)
             images.append(method.frame(ctx))
-            infos.append(dict(method.frame_info))
+            infos.append(dict(ctx.outputs))
             prev_t = t_s
         return images, infos
 
     base = dict(params or {})
     reference = VisibilityBitmap(base)
-    reference.prepare(scene, tracer)
-    alone, _ = sequence(reference, True, IdealLink())
+    reference.restore(reference.prepare(scene, tracer))
+    alone, _ = sequence(reference, True, "ideal")
     rows = []
     for loss in loss_rates:
         for repair in repairs:
             method = VisibilityBitmap({**base, "udp_repair": repair})
-            method.prepare(scene, tracer)
-            link = netsim.make_network(f"bw=800mbps,delay=2.5ms,loss={100 * loss:g}%", seed=seed)
-            images, infos = sequence(method, False, link)
+            method.restore(method.prepare(scene, tracer))
+            # lan-home's link with loss, both ways (the inputs go over TCP: loss only delays them)
+            images, infos = sequence(method, False, f"bw=800mbps,delay=2.5ms,loss={100 * loss:g}%")
             metrics = [compare(a, b) for a, b in zip(alone, images)]
             rows.append({
                 "loss": loss, "repair": repair, "frames": frames,
@@ -309,19 +312,18 @@ def load(results_root) -> dict | None:
 
 
 def store(results_root, parts: dict) -> Path:
-    """Merges ``parts`` into the stored document (atomically) and returns its path."""
-    from suite.harness.results import _jsonable
+    """Merges ``parts`` into the stored document and returns its path. The document records the environment a
+    run records in its config.json (package versions, host, git commit; :func:`suite.harness.cli.bench_document`)
+    and is written atomically."""
+    from suite.harness import results
+    from suite.harness.cli import bench_document
 
     path = bench_path(results_root)
     path.parent.mkdir(parents=True, exist_ok=True)
     doc = load(results_root) or {}
-    doc.update(_jsonable(parts))
+    doc.update(parts)
     doc["schema_version"] = SCHEMA_VERSION
-    doc["host"] = {"node": platform.node(), "machine": platform.machine(), "cpu_count": os.cpu_count(),
-                   "python": platform.python_version()}
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(doc, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    results.write_json(path, bench_document(doc))
     return path
 
 
@@ -414,13 +416,14 @@ def run(args) -> dict:
                                         _ints(args.linearity_lights), repeats=args.linearity_repeats)}
     if "codecs" in parts:
         scene, tracer = scene_and_tracer(args.scene)
-        out["codecs"] = codecs_by_resolution(scene, tracer, _resolutions(args.codec_resolutions), args.frames,
-                                             args.codecs.split(","))
+        out["codecs"] = [dict(row, backend=args.backend) for row in codecs_by_resolution(
+            scene, tracer, _resolutions(args.codec_resolutions), args.frames, args.codecs.split(","))]
     if "lights" in parts:
         scene, tracer = scene_and_tracer(args.lights_scene)
         counts = [n for n in _ints(args.light_counts) if n <= len(scene.lights_at(0.0))]
-        out["lights"] = bytes_by_lights(scene, tracer, _resolutions(args.lights_resolution)[0], counts,
-                                        args.frames, ("none", "lz4", "bitplane+zstd"))
+        out["lights"] = [dict(row, backend=args.backend) for row in bytes_by_lights(
+            scene, tracer, _resolutions(args.lights_resolution)[0], counts, args.frames,
+            ("none", "lz4", "bitplane+zstd"))]
     return out
 
 

@@ -316,8 +316,8 @@ def untile_planes(image: np.ndarray, n_planes: int, rows: int, cols: int) -> np.
     return np.ascontiguousarray(grid[:n_planes]).reshape(n_planes * rows, cols)
 
 
-class SliceEncoder:
-    """Encodes successive frames of one slice (``rows`` × ``width`` pixels of ``bytes_per_pixel``)."""
+class _SliceCodec:
+    """What an encoder and a decoder of one slice share: its shape, codec and temporal reference."""
 
     def __init__(self, spec: CodecSpec, rows: int, width: int, bytes_per_pixel: int):
         self.spec, self.rows, self.width, self.bpp = spec, rows, width, bytes_per_pixel
@@ -327,6 +327,10 @@ class SliceEncoder:
     def _planes(self) -> int:
         """Planes in the H.264 image: one per bit (bit-plane transform) or per byte of the pixel record."""
         return 8 * self.bpp if self.spec.bitplane else self.bpp
+
+
+class SliceEncoder(_SliceCodec):
+    """Encodes successive frames of one slice (``rows`` × ``width`` pixels of ``bytes_per_pixel``)."""
 
     def _image(self, raw: np.ndarray) -> np.ndarray:
         if self.spec.bitplane:
@@ -354,13 +358,8 @@ class SliceEncoder:
         return _compress(self.spec, image.tobytes())
 
 
-class SliceDecoder:
+class SliceDecoder(_SliceCodec):
     """Decodes what a :class:`SliceEncoder` produced; holds the temporal reference of its slice."""
-
-    def __init__(self, spec: CodecSpec, rows: int, width: int, bytes_per_pixel: int):
-        self.spec, self.rows, self.width, self.bpp = spec, rows, width, bytes_per_pixel
-        self._previous: np.ndarray | None = None
-        self._h264: _H264Stream | None = None
 
     def lose(self) -> None:
         """The slice of this frame never arrived: a temporal codec has no reference until the next keyframe."""
@@ -379,7 +378,7 @@ class SliceDecoder:
             image_raw = np.zeros((self.rows, 0), dtype=np.uint8)
         else:
             if self.spec.base == "h264":
-                n_planes = 8 * self.bpp if self.spec.bitplane else self.bpp
+                n_planes = self._planes()
                 cols = -(-self.width // 8) if self.spec.bitplane else self.width
                 ty, tx = _tile_grid(n_planes, self.rows, cols)
                 if keyframe or self._h264 is None:

@@ -54,9 +54,9 @@ Parameters (``config.toml`` [defaults]; ``--set key=value``):
 ``transfer_latency_ms`` (float, ``0.0``)
     Fixed cost added to each modelled memory transfer.
 
-Per-frame facts beyond the harness's columns are in :attr:`VisibilityBitmap.frame_info` after each frame
-(raw and wire bytes, keyframe, rows repaired, frame status, problems found); the results store keeps them as
-``info_<key>`` columns.
+Per-frame facts beyond the harness's columns are the declared :attr:`VisibilityBitmap.outputs` (raw and wire
+bytes, keyframe, rows repaired, frame status, problems found); the results store keeps them as ``info_<key>``
+columns.
 
 The report section "Seed 000 — visibility bitmap" (:mod:`.report`) reads the runs of ``[presets.quick]`` /
 ``[presets.full]`` and the figures stored by ``splitbench bench visibility_bitmap`` (:mod:`.bench`: visibility
@@ -69,6 +69,7 @@ import struct
 
 import numpy as np
 
+from suite.core.scene.model import CameraPose
 from suite.errors import UserError
 from suite.harness.method import Method
 
@@ -113,6 +114,12 @@ class VisibilityBitmap(Method):
     name = "visibility_bitmap"
     mode = "sync"
     uses_network = True
+    outputs = {"raw_bytes": "bitmap bytes before the codec (W x H x bytes per pixel of the layout)",
+               "wire_bytes": "framed, encoded bytes sent (0 in the standalone run)",
+               "keyframe": "the frame was encoded without reference to earlier frames",
+               "rows_repaired": "bitmap rows the client did not receive intact and repaired",
+               "status": "ok | repaired | lost: what the client made of the frame",
+               "problems": "what the client's checks found (lost slices, CRC failures), joined"}
 
     def __init__(self, params: dict):
         super().__init__(params)
@@ -139,14 +146,18 @@ class VisibilityBitmap(Method):
         self.transfer_latency_ms = float(p.get("transfer_latency_ms", 0.0))
         transfer.transfer_ms(0, 1.0, self.transfer_latency_ms)  # validates the latency
         self.light_count = 0
-        self.frame_info: dict = {}
         self.reset()
 
     # ------------------------------------------------------------------------------------------ life cycle
 
-    def prepare(self, scene, tracer) -> None:
-        self.light_count = len(scene.lights_at(scene.camera.frame_time_s(0)))
-        bm.bytes_per_pixel(self.layout, self.light_count)  # paper32 with > 32 lights is a UserError here
+    def prepare(self, scene, tracer) -> dict:
+        light_count = len(scene.lights_at(scene.camera.frame_time_s(0)))
+        bm.bytes_per_pixel(self.layout, light_count)  # paper32 with > 32 lights is a UserError here
+        return {"light_count": light_count}
+
+    def restore(self, prepared) -> None:
+        self.prepared = prepared
+        self.light_count = int(prepared["light_count"]) if prepared else 0
 
     def reset(self) -> None:
         self._encoder: wire.FrameEncoder | None = None
@@ -191,8 +202,7 @@ class VisibilityBitmap(Method):
             out = np.array(rgb, dtype=np.float32, copy=True)
             st.pixels = w * h
         raw_bytes = bm.bitmap_nbytes(w, h, len(lights), self.layout)
-        self.frame_info = {"raw_bytes": raw_bytes, "wire_bytes": 0, "keyframe": True, "rows_repaired": 0,
-                           "status": "ok", "problems": []}
+        ctx.record(raw_bytes=raw_bytes, wire_bytes=0, keyframe=True, rows_repaired=0, status="ok", problems=[])
         self._frames_in_sequence += 1
         return out
 
@@ -201,7 +211,7 @@ class VisibilityBitmap(Method):
         from suite.core.gbuffer import render_gbuffer
 
         w, h = ctx.resolution
-        scene, tracer = ctx.scene, ctx.tracer
+        scene, tracer = ctx.scene, ctx.tracer  # the client's view; server stages use ctx.scene (the server's)
         first = self._frames_in_sequence == 0
 
         # Client, Alg. 3B-1 step 1: send the camera (and the window size on the first frame, §4.3.1). Inputs
@@ -216,24 +226,23 @@ class VisibilityBitmap(Method):
             g_client = render_gbuffer(scene, tracer, ctx.t_s, resolution=(w, h), prev_t_s=ctx.prev_t_s)
             st.pixels = w * h
 
-        # Server, Alg. 3B-2 step 1: the inputs synchronise its copy of the scene.
+        # Server, Alg. 3B-2 step 1: the inputs synchronise its copy of the scene; the camera it renders is the
+        # one it decoded (its scene view has no other).
         with ctx.stage("server_receive", place="server", after=["inputs"]) as st:
-            t_s, server_pose, resolution = decode_inputs(inputs.payload)
+            t_s, server_pose, resolution = decode_inputs(inputs.data)
             if resolution is not None:
                 self._server_resolution = resolution
             if self._server_resolution is None:
                 raise RuntimeError("server has no resolution: the first frame's inputs carry it")
             sw, sh = self._server_resolution
-            mine = scene.camera.pose_at(t_s)
-            if not np.array_equal(server_pose, np.stack([mine.position, mine.target, mine.up]).astype(np.float64)):
-                raise RuntimeError("server scene out of sync with the client's camera")
+            ctx.scene.camera.add(t_s, CameraPose(*server_pose))
             st.bytes = inputs.size_bytes
         lights = scene.lights_at(t_s)
         light_count = len(lights)
 
         # Server, step 2: its own G-buffer (the redundant one of §3.2).
         with ctx.stage("server_gbuffer", place="server") as st:
-            g_server = render_gbuffer(scene, tracer, t_s, resolution=(sw, sh), prev_t_s=None)
+            g_server = render_gbuffer(ctx.scene, tracer, t_s, resolution=(sw, sh), prev_t_s=None)
             st.pixels = sw * sh
 
         # Server, steps 3-4: one shadow ray per pixel and light, bit i = light i unobstructed (§3.2).
@@ -265,7 +274,9 @@ class VisibilityBitmap(Method):
         if not msg.complete and not lost:
             lost = [(0, frame.nbytes)]  # never arrived before the timeout
         with ctx.stage("receive_bitmap", place="client", after=["bitmap"]) as st:
-            received = self._decoder.decode(frame.message, ctx.index, frame.spans if udp else None, lost)
+            # The client decodes what was delivered (lost bytes zero-filled); under UDP each slice is one
+            # datagram, so the slice boundaries are the transport's framing.
+            received = self._decoder.decode(msg.data, ctx.index, frame.spans if udp else None, lost)
             st.bytes = frame.nbytes
             st.pixels = w * h
 
@@ -282,8 +293,7 @@ class VisibilityBitmap(Method):
             out = np.array(rgb, dtype=np.float32, copy=True)
             st.pixels = w * h
 
-        self.frame_info = {"raw_bytes": int(raw.nbytes), "wire_bytes": frame.nbytes, "keyframe": frame.keyframe,
-                           "rows_repaired": received.rows_missing, "status": received.status,
-                           "problems": list(received.problems)}
+        ctx.record(raw_bytes=int(raw.nbytes), wire_bytes=frame.nbytes, keyframe=frame.keyframe,
+                   rows_repaired=received.rows_missing, status=received.status, problems=list(received.problems))
         self._frames_in_sequence += 1
         return out

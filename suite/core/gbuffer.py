@@ -28,6 +28,20 @@ class GBuffer:
     motion: np.ndarray  # (H, W, 2) float32 (dx, dy) in pixels: previous-frame position = current + motion
     view_dir: np.ndarray  # (H, W, 3) unit primary-ray directions
     camera_position: np.ndarray  # (3,)
+    material: np.ndarray | None = None  # (H, W) int32 index into scene.materials, -1 for background
+    kind: np.ndarray | None = None  # (H, W) int8 shading kind (suite.core.scene.model.KIND_CODES), -1 background
+
+    def kind_mask(self, kind: str) -> np.ndarray:
+        """(H, W) bool: pixels whose visible surface has shading kind ``kind`` ("diffuse", "mirror", "glass",
+        "rough_conductor", "rough_plastic"; the legacy "alpha" is "diffuse")."""
+        from suite.core.scene.model import KIND_CODES
+
+        code = KIND_CODES.get("diffuse" if kind == "alpha" else kind)
+        if code is None:
+            raise UserError(f"unknown material kind '{kind}' (choose from {', '.join(KIND_CODES)})")
+        if self.kind is None:
+            raise UserError("this G-buffer carries no material kinds")
+        return self.kind == code
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -81,7 +95,9 @@ def project(points: np.ndarray, pose, fov_deg: float, width: int, height: int) -
 
 
 def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear, repeating lookup with Mitsuba's ``bitmap`` conventions (row 0 at v = 0, texel centres at +0.5)."""
+    """Bilinear, repeating lookup with Mitsuba's ``bitmap`` conventions (row 0 at v = 0, texel centres at +0.5).
+
+    ``texture`` is (H, W, C); returns (N, C) float32."""
     h, w = texture.shape[:2]
     x = uv[:, 0] * w - 0.5
     y = uv[:, 1] * h - 0.5
@@ -133,6 +149,12 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     ``motion`` maps each pixel to where its surface point was in the frame at ``prev_t_s`` (camera motion and
     rigid object motion); it is zero when ``prev_t_s`` is None.
     """
+    return trace_primary(scene, tracer, t_s, resolution, prev_t_s)[0]
+
+
+def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None):
+    """:func:`render_gbuffer` plus what it was made from: ``(g, origins, dirs, hits)`` with float64 pixel-centre
+    rays (N, 3) in row-major pixel order and the tracer's :class:`~suite.core.trace.base.Hits` for them."""
     width, height = check_resolution(resolution or scene.camera.resolution)
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
@@ -175,11 +197,18 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
         cur_xy = np.stack([(idx % width) + 0.5, (idx // width) + 0.5], axis=-1)
         motion[idx] = (prev_xy - cur_xy).astype(np.float32)
     depth = np.where(valid, hits.t, np.inf).astype(np.float32)
+    material = np.full(n, -1, np.int32)
+    kind = np.full(n, -1, np.int8)
+    if len(idx):
+        material[idx] = scene.face_material[hits.prim[idx]]
+        kind[idx] = scene.face_kind_codes()[hits.prim[idx]]
     hw = (height, width)
-    return GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
-                   albedo=albedo.reshape(*hw, 3), emission=emission.reshape(*hw, 3), depth=depth.reshape(hw),
-                   prim=hits.prim.reshape(hw), valid=valid.reshape(hw), motion=motion.reshape(*hw, 2),
-                   view_dir=dirs.reshape(*hw, 3), camera_position=np.asarray(pose.position, np.float32))
+    g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
+                albedo=albedo.reshape(*hw, 3), emission=emission.reshape(*hw, 3), depth=depth.reshape(hw),
+                prim=hits.prim.reshape(hw), valid=valid.reshape(hw), motion=motion.reshape(*hw, 2),
+                view_dir=dirs.reshape(*hw, 3), camera_position=np.asarray(pose.position, np.float32),
+                material=material.reshape(hw), kind=kind.reshape(hw))
+    return g, o64, d64, hits
 
 
 def _points_at_previous_time(scene, prim, points, t_s, prev_t_s):

@@ -9,67 +9,21 @@ row 0 at the top. On disk:
 - ``write_png`` stores 8-bit sRGB after the display transform of :func:`suite.core.metrics.to_display`, so a PNG shows
   exactly what the metrics see.
 
-Both writers are atomic: they write a temporary file in the destination's directory and ``os.replace`` it over
-the destination, so an interrupted or failed write never leaves a truncated image behind (the results store
-treats a present file as complete). OpenImageIO reports failure through return values instead of exceptions,
+Both writers are atomic (:func:`suite.fileio.atomic_target`): they write a temporary file in the destination's
+directory and ``os.replace`` it over the destination, so an interrupted or failed write never leaves a
+truncated image behind (the results store treats a present file as complete). OpenImageIO reports failure through return values instead of exceptions,
 so every call's result is checked and its error text is raised.
 """
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from suite.errors import UserError
 
-
-_umask: int | None = None
-
-
-def _file_mode() -> int:
-    """0o666 minus the process umask: the mode ``open()`` would give a new file.
-
-    mkstemp creates files readable by their owner only, so published files are chmod-ed to this. Linux
-    reports the umask in /proc without changing it; elsewhere it is read once by setting and restoring it.
-    """
-    global _umask
-    if _umask is None:
-        try:
-            with open("/proc/self/status") as status:
-                _umask = next(int(line.split()[1], 8) for line in status if line.startswith("Umask:"))
-        except (OSError, StopIteration, ValueError, IndexError):
-            _umask = os.umask(0o022)
-            os.umask(_umask)
-    return 0o666 & ~_umask
-
-
-def publish(tmp_path, path) -> None:
-    """Moves a finished temporary file onto ``path`` in one step (same directory, so ``os.replace`` is
-    atomic), giving it the permissions a normally created file would have."""
-    os.chmod(tmp_path, _file_mode())
-    os.replace(tmp_path, path)
-
-
-@contextlib.contextmanager
-def atomic_target(path, suffix: str = ".tmp"):
-    """Yields a temporary file name beside ``path``; on success it replaces ``path`` in one step, on any
-    error it is removed, so a crash never leaves a half-written file under the final name."""
-    path = Path(path)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.",
-                                    suffix=suffix)
-    os.close(fd)
-    try:
-        yield tmp_name
-        publish(tmp_name, path)
-    except BaseException:
-        try:
-            os.unlink(tmp_name)
-        except FileNotFoundError:
-            pass
-        raise
+# The suite's one atomic writer (suite/fileio.py); suite.core.reference imports it from here too.
+from suite.fileio import atomic_target
 
 
 def _oiio():

@@ -121,18 +121,13 @@ class AreaLights:
     """The scene's emissive triangles, prepared for sampling proportional to power (area x luminance)."""
 
     def __init__(self, scene, t_s: float = 0.0):
-        self.faces = scene.emissive_faces()
-        positions = scene.positions_at(t_s)
-        tri = scene.triangles(positions)[self.faces].astype(np.float64)
+        lights = scene.area_light_triangles(t_s)  # the model's per-triangle light list
+        self.faces = lights.faces
+        tri = lights.vertices
         self.p0, self.e1, self.e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        cross = np.cross(self.e1, self.e2)
-        self.area = 0.5 * np.linalg.norm(cross, axis=-1)
-        ng = cross / np.maximum(2.0 * self.area, 1e-300)[:, None]
-        # Emission side follows the stored vertex normals (the mesh's intended front), whatever the winding.
-        vn = scene.normals_at(t_s)[scene.faces[self.faces]].astype(np.float64).sum(axis=1)
-        self.normal = np.where(np.einsum("ij,ij->i", ng, vn)[:, None] < 0, -ng, ng)
-        self.radiance = np.stack([scene.materials[m].emission for m in scene.face_material[self.faces]]).astype(np.float64) \
-            if len(self.faces) else np.zeros((0, 3))
+        self.area = lights.area
+        self.normal = lights.normal
+        self.radiance = lights.radiance
         power = self.area * self.radiance.mean(axis=-1) if len(self.faces) else np.zeros(0)
         total = power.sum()
         self.pmf = power / total if total > 0 else np.zeros_like(power)

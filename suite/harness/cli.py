@@ -125,22 +125,28 @@ def cmd_run(args) -> int:
         options["reference_spp"] = args.reference_spp
     if args.clock is not None:
         options["clock"] = args.clock
+    if args.server_net is not None:
+        options["server_net"] = args.server_net
+    if args.quality_clients is not None:
+        options["quality_clients"] = args.quality_clients
     set_grid = _parse_set_grid(args.set)
     nets = list(dict.fromkeys(args.net or ["ideal"]))
     protocols = list(dict.fromkeys(args.protocol or ["tcp"]))
+    client_counts = list(dict.fromkeys(args.clients or [1]))
     keys = list(set_grid)
     configs = []
-    for net, protocol, *values in itertools.product(nets, protocols, *(set_grid[k] for k in keys)):
+    for net, protocol, clients, *values in itertools.product(nets, protocols, client_counts,
+                                                             *(set_grid[k] for k in keys)):
         configs.append(runner.make_config(args.method, scene=args.scene, backend=args.backend,
                                           resolution=args.resolution, frames=args.frames, net=net,
                                           protocol=protocol, set_values=dict(zip(keys, values)), seed=args.seed,
-                                          **options))
+                                          clients=clients, **options))
     out_dir = _check_writable_dir(args.out)
     if len(configs) == 1:
-        outs = [runner.execute(configs[0], out_dir)]
+        outs = [runner.execute(configs[0], out_dir, force=args.force)]
     else:
         with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
-            outcomes = executor.sweep(configs, out_dir, ex, desc=f"{args.method} grid")
+            outcomes = executor.sweep(configs, out_dir, ex, desc=f"{args.method} grid", force=args.force)
         failed = [o for o in outcomes if o["error"]]
         if failed:
             raise UserError(f"{len(failed)} of {len(configs)} runs failed; first: {failed[0]['error']}")
@@ -163,14 +169,17 @@ def format_summary(out: dict) -> str:
     w, h = s["resolution"]
     lines = [f"results: {out['run_dir']}" + ("  (already complete: skipped)" if out["skipped"] else ""),
              f"{s['method']} [{s['variant']}, {s['mode']}]  scene {s['scene']}  {w}x{h}  {s['frames']} frames  "
-             f"net {s['net']}/{s['protocol']}",
+             f"net {s['net']}/{s['protocol']}"
+             + (f"  {s['clients']} clients" if s.get("clients", 1) > 1 else "")
+             + (f"  server link {s['server_net']}" if s.get("server_net") else ""),
              f"  frame ms     mean {_stat(s, 'frame_ms'):8.2f}   p50 {_stat(s, 'frame_ms', 'p50'):8.2f}   "
              f"p95 {_stat(s, 'frame_ms', 'p95'):8.2f}   ({s['fps']:.1f} fps simulated)",
              f"  latency ms   mean {_stat(s, 'latency_ms'):8.2f}   p95 {_stat(s, 'latency_ms', 'p95'):8.2f}"
              + (f"   staleness mean {_stat(s, 'staleness_ms'):.2f}" if s["mode"] == "async" else ""),
              f"  bandwidth    {s['bandwidth_mbps']:.3f} Mbit/s  (down {s['bandwidth_down_mbps']:.3f}, "
              f"up {s['bandwidth_up_mbps']:.3f}; {s['bytes_down'] + s['bytes_up']} bytes)",
-             f"  work         {s['rays']} rays   prepare {s['prepare_ms']:.1f} ms"]
+             f"  work         {s['rays']} rays   prepare {s['prepare_ms']:.1f} ms"
+             + ("  (reused)" if s.get("prepare_reused") else "")]
     for label, prefix in (("vs reference", ""), ("vs zero-latency", "zl_")):
         ssim = _stat(s, f"{prefix}ssim")
         if prefix and not s.get("zero_latency_run"):
@@ -233,40 +242,43 @@ def cmd_compare(args) -> int:
 def cmd_bench(args) -> int:
     if args.what == "tracing":
         return _bench_tracing(args.rest)
+    if args.what == "clients":
+        from suite.harness import bench_clients
+
+        return int(bench_clients.main(list(args.rest)) or 0)
     bench = _method_bench(args.what)
     if hasattr(bench, "main"):
         return int(bench.main(list(args.rest)) or 0)
-    _print_json(bench.run(list(args.rest)))
+    _print_json(bench_document(bench.run(list(args.rest))))
     return 0
+
+
+def bench_document(figures: dict) -> dict:
+    """A benchmark's figures with the environment a run records in its config.json (package versions, host,
+    git commit: :func:`suite.harness.results.environment`), so a stored or printed benchmark says where it ran."""
+    from suite.harness import results
+
+    return {**figures, **results.environment()}
 
 
 def bench_names() -> list[str]:
     """``tracing`` plus every method folder that ships a bench.py."""
     from suite.harness import registry
 
-    return ["tracing"] + [n for n, spec in registry.discover().items() if (spec.path / "bench.py").is_file()]
+    return ["tracing", "clients"] + [n for n, spec in registry.discover().items() if spec.has_module("bench")]
 
 
 def _method_bench(name: str):
-    """Imports ``methods/<name>/bench.py`` (as ``methods.<name>.bench`` for the project's own methods, so that its
-    imports of sibling modules work); it must define ``main(argv)`` or ``run(argv)``."""
-    import importlib
-    import importlib.util
-
+    """Imports ``methods/<name>/bench.py`` (:func:`suite.harness.registry.load_module`); it must define
+    ``main(argv)`` or ``run(argv)``."""
     from suite.harness import registry
 
     spec = registry.discover().get(name)
-    file = spec.path / "bench.py" if spec is not None else None
-    if file is None or not file.is_file():
+    if spec is None or not spec.has_module("bench"):
         raise UserError(f"unknown benchmark '{name}' (choose from {', '.join(bench_names())})")
-    if spec.path.parent == registry.METHODS_DIR and (registry.METHODS_DIR / "__init__.py").is_file():
-        module = importlib.import_module(f"methods.{name}.bench")
-    else:
-        module_spec = importlib.util.spec_from_file_location(f"splitbench_methods.{name}.bench", file)
-        module = importlib.util.module_from_spec(module_spec)
-        module_spec.loader.exec_module(module)
+    module = spec.load_module("bench")
     if not hasattr(module, "main") and not hasattr(module, "run"):
-        raise UserError(f"{file} defines neither main(argv) nor run(argv)")
+        raise UserError(f"{spec.path / 'bench.py'} defines neither main(argv) nor run(argv)")
     return module
 
 
@@ -287,12 +299,13 @@ def _bench_tracing(argv) -> int:
         raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
     if not os.path.isfile(args.scene) and args.scene not in runner.scene_names():
         raise UserError(f"unknown scene '{args.scene}'")
-    result = bench.run(runner.load_scene(args.scene), args.backend)
+    result = bench_document(bench.run(runner.load_scene(args.scene), args.backend))
     if args.json:
         _print_json(result)
         return 0
     print(f"tracing benchmark: scene {result['scene']}, backend {args.backend}, {result['rays']:,} shadow rays, "
           f"median of {result['repeats']}")
+    print(f"  host {result['host']['node']} ({result['host']['platform']}), git {result['git']['commit'][:12]}")
     for query in ("occluded", "intersect"):
         r = result[query]
         print(f"  {query:9s}  suite {r['suite_rays_per_s']:>13,.0f} rays/s   raw {r['raw_rays_per_s']:>13,.0f} rays/s"
@@ -311,7 +324,7 @@ def cmd_reproduce(args) -> int:
     for problem in problems:
         print(f"{PROG}: warning: {problem}", file=sys.stderr)
     with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
-        outcomes = executor.sweep(configs, results_dir, ex, desc=f"preset {args.preset}")
+        outcomes = executor.sweep(configs, results_dir, ex, desc=f"preset {args.preset}", force=args.force)
     from reports.build import build
 
     index = build(results_dir, report_dir)
@@ -367,6 +380,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="method parameter (repeatable); "
                    "variant=paper|<name> picks a variant")
     s.add_argument("--seed", default=0, type=_int_arg("--seed"))
+    s.add_argument("--clients", action="append", default=None, type=_int_arg("--clients"),
+                   help="clients on the one server (default 1; repeat for a grid)")
+    s.add_argument("--server-net", default=None,
+                   help="profile of the server's link that all clients share (default: no shared bottleneck)")
+    s.add_argument("--quality-clients", type=int, default=None,
+                   help="how many clients are compared with the references (default 1; -1: all)")
+    s.add_argument("--force", action="store_true", help="recompute even if a complete run with this key exists")
     s.add_argument("--out", default="results", help="results root")
     s.add_argument("--reference-spp", type=_int_arg("--reference-spp"), default=None,
                    help="spp of the path-traced reference (0 = no reference metrics; default 32)")
@@ -410,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--executor", default="serial", choices=EXECUTORS)
     s.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://host:port (implies dask)")
     s.add_argument("--workers", default=2, type=_int_arg("--workers"))
+    s.add_argument("--force", action="store_true", help="recompute runs that are already complete")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_reproduce)
 

@@ -17,12 +17,12 @@ from suite.progress import progress
 EXECUTORS = ("serial", "processes", "dask")
 
 
-def run_one(cfg: dict, results_root: str) -> dict:
+def run_one(cfg: dict, results_root: str, force: bool = False) -> dict:
     """Runs one config; failures come back as data so that one broken run does not stop a sweep."""
     from suite.harness import runner
 
     try:
-        out = runner.execute(cfg, results_root)
+        out = runner.execute(cfg, results_root, force=force)
         return {"config": cfg, "run_dir": out["run_dir"], "skipped": out["skipped"], "error": None}
     except UserError as exc:
         return {"config": cfg, "run_dir": None, "skipped": False, "error": str(exc)}
@@ -118,21 +118,22 @@ def make_executor(kind: str = "serial", scheduler: str | None = None, workers: i
     return DaskExecutor(scheduler, workers, processes)
 
 
-def sweep(configs: list[dict], results_root, executor=None, desc: str = "runs") -> list[dict]:
-    """Runs every config through ``executor`` (serial by default); returns the outcomes in config order."""
+def sweep(configs: list[dict], results_root, executor=None, desc: str = "runs", force: bool = False) -> list[dict]:
+    """Runs every config through ``executor`` (serial by default); returns the outcomes in config order.
+    ``force`` recomputes runs that are already complete."""
     executor = executor or SerialExecutor()
     outcomes = [None] * len(configs)
     # Executors yield in completion order; the index restores config order.
     keyed = [dict(c, _sweep_index=i) for i, c in enumerate(configs)]
-    for out in progress(executor.map(_indexed_run, keyed, str(results_root)), total=len(configs), desc=desc,
+    for out in progress(executor.map(_indexed_run, keyed, str(results_root), bool(force)), total=len(configs), desc=desc,
                         unit="run"):
         outcomes[out.pop("sweep_index")] = out
     return outcomes
 
 
-def _indexed_run(cfg: dict, results_root: str) -> dict:
+def _indexed_run(cfg: dict, results_root: str, force: bool = False) -> dict:
     cfg = dict(cfg)
     index = cfg.pop("_sweep_index")
-    out = run_one(cfg, results_root)
+    out = run_one(cfg, results_root, force)
     out["sweep_index"] = index
     return out

@@ -65,29 +65,17 @@ class MethodSpec:
             params[key] = check_param(self.name, params, key, value)
         return params
 
+    def has_module(self, part: str) -> bool:
+        """Whether the folder ships ``<part>.py`` (``method``, ``report``, ``bench``)."""
+        return (self.path / f"{part}.py").is_file()
+
+    def load_module(self, part: str):
+        """Imports this method's ``<part>.py``; see :func:`load_module`."""
+        return _import_part(self, part)
+
     def load(self) -> type[Method]:
         """Imports method.py and returns its one Method subclass."""
-        module = None
-        if self.path.parent == METHODS_DIR and (METHODS_DIR / "__init__.py").is_file():
-            # A folder of the project's own methods package: import it as methods.<name>.method so that its
-            # relative and absolute imports of sibling modules both work.
-            module_name = f"methods.{self.name}.method"
-            module = importlib.import_module(module_name)
-        else:
-            module_name = f"splitbench_methods.{self.name}.method"
-            module = sys.modules.get(module_name)
-        if module is None:
-            file = self.path / "method.py"
-            if not file.is_file():
-                raise UserError(f"method '{self.name}' has no method.py in {self.path}")
-            spec = importlib.util.spec_from_file_location(module_name, file)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[module_name] = module
-            try:
-                spec.loader.exec_module(module)
-            except BaseException:
-                del sys.modules[module_name]
-                raise
+        module = self.load_module("method")
         classes = [c for _, c in inspect.getmembers(module, inspect.isclass)
                    if issubclass(c, Method) and c is not Method and c.__module__ == module.__name__]
         if len(classes) != 1:
@@ -99,19 +87,25 @@ class MethodSpec:
         return cls
 
     def preset_points(self, preset: str) -> list[dict]:
-        """The runs of one preset: product(scenes, resolutions, nets, protocols, variants, *grid values)."""
+        """The runs of one preset: product(scenes, resolutions, nets, protocols, variants, clients, server_nets,
+        *grid values)."""
         table = self.config.get("presets", {}).get(preset)
         if table is None:
             return []
         grid = dict(table.get("grid", {}))
         keys = sorted(grid)
         points = []
-        for scene, res, net, proto, variant, *values in itertools.product(
+        for scene, res, net, proto, variant, clients, server_net, *values in itertools.product(
                 table.get("scenes", ["cornell"]), table.get("resolutions", ["160x90"]), table.get("nets", ["ideal"]),
-                table.get("protocols", ["tcp"]), table.get("variants", ["default"]),
+                table.get("protocols", ["tcp"]), table.get("variants", ["default"]), table.get("clients", [1]),
+                table.get("server_nets", ["none"]),
                 *[v if isinstance(v, list) else [v] for v in (grid[k] for k in keys)]):
             point = {"method": self.name, "scene": scene, "resolution": res, "net": net, "protocol": proto,
                      "variant": variant, "frames": int(table.get("frames", 3)), "set": dict(zip(keys, values))}
+            if clients != 1:
+                point["clients"] = clients
+            if server_net != "none":
+                point["server_net"] = server_net
             for opt in ("backend", "reference_spp", "reference_max_depth", "quality_every", "clock", "seed"):
                 if opt in table:
                     point[opt] = table[opt]
@@ -171,6 +165,46 @@ def discover() -> dict[str, MethodSpec]:
                 raise UserError(f"{cfg}: malformed TOML ({exc})") from None
             specs[name] = MethodSpec(name, cfg.parent, config)
     return dict(sorted(specs.items()))
+
+
+METHOD_PARTS = ("method", "report", "bench")
+
+
+def load_module(method: str | MethodSpec, part: str):
+    """Imports one file of a method folder: ``part`` is ``"method"``, ``"report"`` or ``"bench"``.
+
+    The one way the harness, the CLI and the report builder import a method's files. A folder of the project's
+    own ``methods`` package is imported as ``methods.<name>.<part>``, so that its relative and absolute imports
+    of sibling modules both work; a folder under ``SPLITBENCH_METHOD_PATHS`` is imported from its file as
+    ``splitbench_methods.<name>.<part>`` (kept in ``sys.modules`` while it is the same file). A missing file is
+    a UserError naming it.
+    """
+    spec = method if isinstance(method, MethodSpec) else get(method)
+    return _import_part(spec, part)
+
+
+def _import_part(spec: MethodSpec, part: str):
+    if part not in METHOD_PARTS:
+        raise ValueError(f"unknown method file '{part}' (choose from {', '.join(METHOD_PARTS)})")
+    file = spec.path / f"{part}.py"
+    if not file.is_file():
+        raise UserError(f"method '{spec.name}' has no {part}.py in {spec.path}")
+    if spec.path.parent == METHODS_DIR and (METHODS_DIR / "__init__.py").is_file():
+        return importlib.import_module(f"methods.{spec.name}.{part}")
+    module_name = f"splitbench_methods.{spec.name}.{part}"
+    module = sys.modules.get(module_name)
+    # Two roots may hold a method of the same name (tests do): reuse a module only if it is this very file.
+    if module is not None and Path(getattr(module, "__file__", "") or "").resolve() == file.resolve():
+        return module
+    module_spec = importlib.util.spec_from_file_location(module_name, file)
+    module = importlib.util.module_from_spec(module_spec)
+    sys.modules[module_name] = module
+    try:
+        module_spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[module_name]
+        raise
+    return module
 
 
 def get(name: str) -> MethodSpec:

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from suite import fileio
+
 SCHEMA_VERSION = 1
 REPO_DIR = Path(__file__).resolve().parents[2]
 # Versions that can change results; recorded in config.json and part of the run key.
@@ -67,11 +69,40 @@ def canonical_json(obj) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
 
 
+# The sources whose change can change a run's results: the suite, netsim and the method's own folder.
+CODE_ROOTS = ("suite", "netsim")
+CODE_SUFFIXES = (".py", ".toml")
+
+
+@lru_cache(maxsize=None)
+def code_digest(method: str | None = None) -> str:
+    """SHA-256 over the package sources that produce a run (path and content of every .py/.toml file under
+    suite/, netsim/ and methods/<method>/, plus pyproject.toml), so an edited source makes a new run even
+    before it is committed. Computed once per process."""
+    h = hashlib.sha256()
+    roots = [REPO_DIR / r for r in CODE_ROOTS]
+    if method:
+        from suite.harness import registry
+
+        roots.append(registry.get(method).path)
+    files = [REPO_DIR / "pyproject.toml"]
+    for root in roots:
+        files += sorted(p for p in Path(root).rglob("*") if p.suffix in CODE_SUFFIXES and p.is_file()
+                        and "__pycache__" not in p.parts)
+    for p in files:
+        if p.is_file():
+            rel = p.relative_to(REPO_DIR) if p.is_relative_to(REPO_DIR) else p
+            h.update(str(rel).encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def run_key(config: dict, env: dict) -> str:
-    """Hash of what makes a run: schema version, config (seed, backend included), package versions, host, commit."""
+    """Hash of what makes a run: schema version, config (seed, backend, code digest included), package versions,
+    host."""
+    # The code is identified by the config's code_digest (sources, committed or not); the commit is recorded in
+    # config.json but is not part of the key, so a commit that changes no source keeps the runs.
     identity = {"schema_version": SCHEMA_VERSION, "config": config, "packages": env["packages"],
-                "host": {k: env["host"][k] for k in ("node", "machine", "system")},
-                "git_commit": env["git"]["commit"]}
+                "host": {k: env["host"][k] for k in ("node", "machine", "system")}}
     return hashlib.sha256(canonical_json(identity).encode()).hexdigest()
 
 
@@ -116,7 +147,8 @@ def _jsonable(value):
 
 
 def write_json(path, obj) -> None:
-    Path(path).write_text(json.dumps(_jsonable(obj), indent=2, sort_keys=True) + "\n")
+    """Writes ``obj`` as JSON (non-finite floats as null), atomically (suite.fileio)."""
+    fileio.write_text(path, json.dumps(_jsonable(obj), indent=2, sort_keys=True) + "\n")
 
 
 class RunWriter:

@@ -2,12 +2,13 @@
 
 ``make_config`` validates user input into a full run config (every bad value is a UserError naming it) and
 ``execute`` runs it, or skips it when its results are already complete. The core is reached through the small
-module-level hooks below (``load_scene``, ``make_tracer``, ``make_link``, ``reference_image``,
+module-level hooks below (``load_scene``, ``make_tracer``, ``make_network``, ``reference_image``,
 ``compare_images``) so that the harness tests can run on synthetic scenes without the renderer.
 """
 from __future__ import annotations
 
 import hashlib
+import io
 import math
 import os
 import re
@@ -17,11 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from suite.harness import registry, results
+from suite import fileio
 from suite.errors import UserError
-from suite.harness.method import Clock, Context, Method
+from suite.harness import registry, results
+from suite.harness.clients import client_camera
+from suite.harness.method import (ClientCamera, Clock, Context, Method, ServerCamera, SimulationError, Update,  # noqa: F401
+                                  delivered, running_on, scene_view)
+from suite.harness.timeline import WORK_KINDS, Timeline, run_async, run_sync
 from suite.progress import progress
-from suite.harness.timeline import IdealLink, Timeline, run_async, run_sync
 
 DEFAULT_RESULTS_DIR = "results"
 METRICS = ("ssim", "dssim", "psnr_db", "nrmse", "flip")
@@ -31,8 +35,14 @@ RUN_DEFAULTS = {
     "scene": "cornell", "backend": "embree", "resolution": [160, 90], "frames": 3, "net": "ideal",
     "protocol": "tcp", "variant": "default", "seed": 0, "clock": "measured", "work_ns_per_ray": 50.0,
     "work_ns_per_pixel": 20.0, "quality_every": 0, "reference_spp": 32, "reference_max_depth": 8,
-    "exposure": 1.0, "message_timeout_ms": 100.0,
+    "exposure": 1.0, "message_timeout_ms": 100.0, "clients": 1, "server_net": None, "quality_clients": 1,
+    "work_ns_per_tap": 2.0, "work_ns_per_point": 50.0, "work_ns_per_codec_byte": 5.0,
 }
+# Settings that cannot change what a method computes offline: prepare() output is shared across them.
+NOT_PREPARE_KEYS = ("net", "protocol", "clients", "server_net", "message_timeout_ms", "frames", "quality_every",
+                    "quality_clients", "reference_spp", "reference_max_depth", "exposure", "clock", "work_ns_per_ray",
+                    "work_ns_per_pixel", "work_ns_per_tap", "work_ns_per_point", "work_ns_per_codec_byte")
+MAX_CLIENTS = 256
 # With quality_every = 0, at most this many frames per run are compared against the references.
 AUTO_QUALITY_FRAMES = 16
 # At most this many frames per run are saved as EXR + PNG.
@@ -65,37 +75,21 @@ def backend_names() -> list[str]:
     return list(list_backends())
 
 
-def _netsim():
-    try:
-        import netsim
-    except ImportError:
-        return None
-    return netsim if hasattr(netsim, "make_network") else None
-
-
-_INLINE = re.compile(r"^\s*bw=([0-9.]+)\s*mbps\s*,\s*delay=([0-9.]+)\s*ms\s*$", re.IGNORECASE)
-
-
-def make_link(net: str, direction: str, seed: int):
-    """A link for one direction: netsim when installed, else the ideal-link fallback (delay + size/bandwidth)."""
-    ns = _netsim()
-    if ns is not None:
-        # One netsim instance per direction, each its own FIFO; distinct seeds keep their loss streams apart.
-        return ns.make_network(net, seed=int(seed) * 2 + (0 if direction == "down" else 1))
-    if net == "ideal":
-        return IdealLink()
-    m = _INLINE.match(net)
-    if m:
-        return IdealLink(bandwidth_mbps=float(m.group(1)), delay_ms=float(m.group(2)))
-    raise UserError(f"unknown network profile '{net}' (netsim is not installed: use 'ideal' or "
-                    f"'bw=<N>mbps,delay=<D>ms')")
-
-
 def net_profiles() -> dict[str, str]:
-    ns = _netsim()
-    if ns is not None:
-        return dict(ns.list_profiles())
-    return {"ideal": "zero delay, infinite bandwidth, no loss (fallback link; netsim not installed)"}
+    import netsim
+
+    return dict(netsim.list_profiles())
+
+
+def make_network(net: str, clients: int, server_net, seed: int):
+    """The run's network: one access link per client (profile ``net``), all sharing the server's link
+    (profile ``server_net``; None = no shared bottleneck). Bad specs are a UserError naming them."""
+    import netsim
+
+    try:
+        return netsim.make_topology(access=net, server=server_net, clients=int(clients), seed=int(seed))
+    except netsim.NetsimError as exc:
+        raise UserError(str(exc)) from None
 
 
 def reference_image(scene, t_s: float, resolution, spp: int, max_depth: int) -> np.ndarray:
@@ -190,7 +184,23 @@ def make_config(method: str, *, scene=None, backend=None, resolution=None, frame
     backends = backend_names()
     if cfg["backend"] not in backends:
         raise UserError(f"unknown backend '{cfg['backend']}' (choose from {', '.join(backends)})")
-    make_link(cfg["net"], "down", 0)  # raises UserError for an unknown profile or malformed spec
+    try:
+        cfg["clients"] = int(cfg["clients"])
+    except (TypeError, ValueError):
+        raise UserError(f"malformed client count '{cfg['clients']}'") from None
+    if not 1 <= cfg["clients"] <= MAX_CLIENTS:
+        raise UserError(f"client count must be 1..{MAX_CLIENTS}, got {cfg['clients']}")
+    if cfg["server_net"] in ("", "none"):
+        cfg["server_net"] = None
+    try:
+        cfg["quality_clients"] = int(cfg["quality_clients"])
+    except (TypeError, ValueError):
+        raise UserError(f"malformed quality_clients '{cfg['quality_clients']}'") from None
+    if not math.isfinite(float(cfg["message_timeout_ms"])) or float(cfg["message_timeout_ms"]) <= 0:
+        raise UserError(f"message_timeout_ms must be a finite time > 0, got {cfg['message_timeout_ms']}")
+    # raises UserError for an unknown profile, a malformed spec or impossible settings
+    make_network(cfg["net"], cfg["clients"], cfg["server_net"], 0)
+    cfg["code_digest"] = results.code_digest(spec.name)
     return cfg
 
 
@@ -201,7 +211,7 @@ class Sequence:
     """One frame sequence of a method: per-frame rows, images, and the timeline behind them."""
 
     rows: list = field(default_factory=list)
-    images: dict = field(default_factory=dict)  # frame index → image, for the kept frames
+    images: dict = field(default_factory=dict)  # (client, frame index) → image, for the kept frames
     update_rows: list = field(default_factory=list)
     timeline: Timeline | None = None
 
@@ -210,15 +220,16 @@ def _image_digest(img: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(img, dtype=np.float32).tobytes()).hexdigest()[:16]
 
 
-def _check_image(img, method: Method, index: int, resolution) -> np.ndarray:
+def _check_image(img, method: Method, index: int, resolution, client: int = 0) -> np.ndarray:
     w, h = resolution
     img = np.asarray(img)
+    who = f"frame {index}" + (f" of client {client}" if client else "")
     if img.shape != (h, w, 3):
-        raise UserError(f"method '{method.name}' returned an image of shape {img.shape} for frame {index}, "
+        raise UserError(f"method '{method.name}' returned an image of shape {img.shape} for {who}, "
                         f"expected {(h, w, 3)}")
     img = np.ascontiguousarray(img, dtype=np.float32)
     if not np.isfinite(img).all():
-        raise UserError(f"method '{method.name}' returned a non-finite image for frame {index}")
+        raise UserError(f"method '{method.name}' returned a non-finite image for {who}")
     return img
 
 
@@ -232,70 +243,129 @@ def _group_columns(group, prefix_stage: str = "stage_") -> dict:
     return cols
 
 
-def simulate(method: Method, scene, tracer, cfg: dict, zero_latency: bool, keep: set,
-             desc: str | None = None) -> Sequence:
-    """Runs one frame sequence for real on the simulated clock. ``keep``: frame indices whose images to keep."""
-    net = "ideal" if zero_latency else cfg["net"]
-    links = {d: (IdealLink() if zero_latency else make_link(net, d, cfg["seed"])) for d in ("down", "up")}
-    timeline = Timeline(links, message_timeout_s=cfg["message_timeout_ms"] / 1e3)
-    clock = Clock(cfg["clock"], cfg["work_ns_per_ray"], cfg["work_ns_per_pixel"])
+def _clock(cfg: dict) -> Clock:
+    return Clock(cfg["clock"], cfg["work_ns_per_ray"], cfg["work_ns_per_pixel"], cfg["work_ns_per_tap"],
+                 cfg["work_ns_per_point"], cfg["work_ns_per_codec_byte"])
+
+
+def simulate(cls, scene, tracer, cfg: dict, zero_latency: bool, keep: set, prepared=None,
+             desc: str | None = None, keep_clients=None) -> Sequence:
+    """Runs one frame sequence of every client for real on the simulated clock.
+
+    ``cls`` is the method class: the server gets one instance and every client its own, so that they share
+    nothing but messages. ``keep``: frame indices whose images to keep (of the clients in ``keep_clients``,
+    default all).
+    """
+    n_clients = int(cfg.get("clients", 1))
+    keep_clients = set(range(n_clients)) if keep_clients is None else set(keep_clients)
     params = cfg["params"]
+    if zero_latency:
+        network = make_network("ideal", n_clients, None, cfg["seed"])
+    else:
+        network = make_network(cfg["net"], n_clients, cfg.get("server_net"), cfg["seed"])
+    timeline = Timeline(network, message_timeout_s=cfg["message_timeout_ms"] / 1e3, clients=n_clients)
+    clock = _clock(cfg)
     fps = float(params.get("client_fps") or scene.camera.fps)
     period_s = 1.0 / fps
     t0_s = scene.camera.frame_time_s(0)
     n = cfg["frames"]
     seq = Sequence(timeline=timeline)
-    bar = progress(total=n, desc=desc, unit="frame")
-    method.reset()
-    state = {"prev_frame_t": None, "prev_update_t": None, "used": None}
-    frame_info: dict[int, dict] = {}
+    bar = progress(total=n * n_clients, desc=desc, unit="frame")
 
-    def context(group, t_s, prev_t_s, **extra) -> Context:
-        if hasattr(tracer, "update"):
+    server = cls(params)
+    clients = [cls(params) for _ in range(n_clients)]
+    for inst in [server, *clients]:
+        inst.restore(prepared)
+        inst.reset()
+    paths = [client_camera(scene.camera, c, n_clients) for c in range(n_clients)]
+    client_views = [scene_view(scene, ClientCamera(paths[c], c)) for c in range(n_clients)]
+    server_views = [scene_view(scene, ServerCamera(paths[c], c)) for c in range(n_clients)]
+    payloads: dict[int, bytes | None] = {}
+    frame_info: dict[tuple, dict] = {}
+    update_info: dict[tuple, dict] = {}
+    prev_t = {}
+    tracer_t = {"t": None}
+
+    def set_scene_time(t_s):
+        import greenlet
+
+        greenlet.getcurrent().sb_t_s = t_s
+        if hasattr(tracer, "update") and tracer_t["t"] != t_s:
             tracer.update(t_s)
-        return Context(group, scene=scene, tracer=tracer, t_s=t_s, prev_t_s=prev_t_s, resolution=cfg["resolution"],
-                       seed=cfg["seed"], params=params, zero_latency=zero_latency, protocol=cfg["protocol"],
-                       clock=clock, **extra)
+            tracer_t["t"] = t_s
 
-    def finish(index, img):
-        img = _check_image(img, method, index, cfg["resolution"])
-        # Method-specific per-frame facts (e.g. codec bytes, repaired rows) become `info_<key>` columns.
-        frame_info[index] = _scalar_info(getattr(method, "frame_info", None))
-        if index in keep:
-            seq.images[index] = img
+    # Loops interleave on the simulated clock; a resumed loop gets its scene time's geometry back (outside any
+    # stage, so never timed).
+    timeline.sched.on_resume = lambda g: set_scene_time(g.sb_t_s) if hasattr(g, "sb_t_s") else None
+
+    def context(group, t_s, declared, **extra) -> Context:
+        set_scene_time(t_s)
+        c = group.client
+        key = (group.loop, c)
+        ctx = Context(group, scene=client_views[c], server_scene=server_views[c], tracer=tracer, t_s=t_s,
+                      prev_t_s=prev_t.get(key), resolution=cfg["resolution"], seed=cfg["seed"], params=params,
+                      zero_latency=zero_latency, protocol=cfg["protocol"], clock=clock, client=c,
+                      clients=n_clients, outputs=declared, payloads=payloads, **extra)
+        prev_t[key] = t_s
+        return ctx
+
+    def finish(ctx, img):
+        c, i = ctx.client, ctx.index
+        img = _check_image(img, cls, i, cfg["resolution"], c)
+        frame_info[(c, i)] = _scalar_info(ctx.outputs)
+        if i in keep and c in keep_clients:
+            seq.images[(c, i)] = img
         bar.update(1)
         return _image_digest(img)
 
     def sync_frame(group):
-        i = group.index
-        t_s = t0_s + i * period_s
-        ctx = context(group, t_s, state["prev_frame_t"])
-        state["prev_frame_t"] = t_s
-        return finish(i, method.frame(ctx))
+        ctx = context(group, t0_s + group.index * period_s, cls.outputs)
+        return finish(ctx, clients[group.client].frame(ctx))
 
-    def async_update(group, input_s):
-        t_s = t0_s + input_s
-        ctx = context(group, t_s, state["prev_update_t"])
-        state["prev_update_t"] = t_s
-        return method.server_update(ctx)
+    frame_ctx: dict[tuple, Context] = {}
+    update_objects: dict[tuple, Update] = {}
+    shown: dict[int, int] = {}
+
+    def async_input(group):
+        ctx = context(group, t0_s + group.index * period_s, cls.outputs)
+        frame_ctx[(group.client, group.index)] = ctx
+        clients[group.client].client_input(ctx)
+
+    def async_update(group, inputs):
+        _, frame_i, _ = inputs.newest
+        ctx = context(group, t0_s + frame_i * period_s, cls.update_outputs,
+                      inbox=[delivered(ev, payloads.get(ev.seq), fi, fs) for ev, fi, fs in inputs.messages])
+        with running_on("server"):
+            value = server.server_update(ctx)
+        if value is not None:
+            raise SimulationError(f"{cls.name}.server_update returned a value; what the client may use must "
+                                  f"reach it as a message (ctx.send)")
+        update_info[(group.client, group.index)] = _scalar_info(ctx.outputs)
 
     def async_frame(group, used):
-        i = group.index
-        t_s = t0_s + i * period_s
-        is_new = used is not None and used.index != state["used"]
-        state["used"] = used.index if used is not None else None
-        ctx = context(group, t_s, state["prev_frame_t"], update_index=used.index if used else -1,
-                      update_t_s=(t0_s + used.input_s) if used else None, update_is_new=is_new)
-        state["prev_frame_t"] = t_s
-        return finish(i, method.client_frame(ctx, used.value if used else None))
+        c = group.client
+        ctx = frame_ctx.pop((c, group.index))
+        update = None
+        if used is not None:
+            key = (c, used.index)
+            if key not in update_objects:
+                # The client gets the update as the bytes its messages delivered (losses zero-filled).
+                msgs = {ev.name: delivered(ev, payloads.get(ev.seq)) for ev in used.group.events.values()
+                        if ev.kind == "message" and ev.place == "down"}
+                update_objects[key] = Update(used.index, t0_s + used.input_s, msgs)
+            update = update_objects[key]
+            update.is_new = shown.get(c) != used.index
+            shown[c] = used.index
+            ctx.update_index, ctx.update_t_s, ctx.update_is_new = used.index, update.input_t_s, update.is_new
+        return finish(ctx, clients[c].client_frame(ctx, update))
 
     try:
-        if method.mode == "sync":
+        if cls.mode == "sync":
             frames = run_sync(timeline, n, period_s, sync_frame)
             updates = []
         else:
             update_fps = float(params.get("update_fps") or 0.0)
-            frames, updates = run_async(timeline, n, period_s, async_update, async_frame,
+            frames, updates = run_async(timeline, n, period_s, async_update, async_frame, run_input=async_input,
                                         max_in_flight=int(params.get("max_in_flight") or 1),
                                         update_period_s=1.0 / update_fps if update_fps > 0 else 0.0,
                                         lockstep=zero_latency)
@@ -303,45 +373,56 @@ def simulate(method: Method, scene, tracer, cfg: dict, zero_latency: bool, keep:
         bar.close()
 
     for u in updates:
-        row = {"update": u.index, "start_s": u.start_s, "input_s": u.input_s, "arrival_s": u.arrival_s,
-               "update_ms": u.update_ms, "critical_path": ">".join(u.group.critical_path())}
+        row = {"client": u.client, "update": u.index, "start_s": u.start_s, "input_s": u.input_s,
+               "input_frame": u.input_frame, "arrival_s": u.arrival_s, "update_ms": u.update_ms,
+               "critical_path": ">".join(u.group.critical_path())}
         row.update(u.group.summary())
         row.update(_group_columns(u.group))
+        row.update({f"info_{k}": v for k, v in update_info.get((u.client, u.index), {}).items()})
         seq.update_rows.append(row)
 
-    prev_start_s = -math.inf
+    by_client: dict[int, list] = {}
+    for u in updates:
+        by_client.setdefault(u.client, []).append(u)
+    prev_start_s: dict[int, float] = {}
     for f in frames:
         g = f.group
-        row = {"frame": f.index, "t_s": t0_s + f.index * period_s, "start_s": f.start_s, "display_s": f.display_s,
-               "frame_ms": f.frame_ms, "latency_ms": f.latency_ms, "frame_interval_ms": f.frame_interval_ms,
-               "staleness_ms": f.staleness_ms, "update_index": f.update_index}
+        c = f.client
+        row = {"client": c, "frame": f.index, "t_s": t0_s + f.index * period_s, "start_s": f.start_s,
+               "display_s": f.display_s, "frame_ms": f.frame_ms, "latency_ms": f.latency_ms,
+               "frame_interval_ms": f.frame_interval_ms, "staleness_ms": f.staleness_ms,
+               "update_index": f.update_index}
         row.update(g.summary())
         row.update(_group_columns(g))
-        row["critical_path"] = ">".join(g.critical_path())
-        for name, ms in g.critical_path_ms().items():
+        display = g.display_event()
+        row["critical_path"] = ">".join(g.critical_path(display))
+        for name, ms in g.critical_path_ms(display).items():
             is_message = name in g.events and g.events[name].kind == "message"
             row[f"cp_{'net_' if is_message else ''}{name}_ms"] = ms
         if updates:
-            # Async accounting: the server work of the update on screen, and the bytes of the updates that
-            # arrived since the previous frame started (so the per-frame bytes sum to the delivered total).
+            # Async accounting: the server work of the update on screen, and the bytes of this client's updates
+            # that arrived since its previous frame started (so the per-frame bytes sum to the delivered total).
+            mine = by_client.get(c, [])
             if f.update_index >= 0:
-                used = updates[f.update_index]
+                used = mine[f.update_index]
                 row["server_ms"] = used.group.summary()["server_ms"]
                 row.update(_group_columns(used.group))
-            for u in updates:
-                if prev_start_s < u.arrival_s <= f.start_s + 1e-9:
+            lo = prev_start_s.get(c, -math.inf)
+            for u in mine:
+                if lo < u.arrival_s <= f.start_s + 1e-9:
                     s = u.group.summary()
-                    for key in ("bytes_down", "bytes_up", "lost_bytes", "retransmissions", "messages", "rays"):
+                    for key in ("bytes_down", "bytes_up", "lost_bytes", "retransmissions", "messages", "rays",
+                                "work_taps", "work_points", "work_codec_bytes"):
                         row[key] += s[key]
         row["image_sha256"] = f.value
-        row.update({f"info_{k}": v for k, v in frame_info.get(f.index, {}).items()})
-        prev_start_s = f.start_s
+        row.update({f"info_{k}": v for k, v in frame_info.get((c, f.index), {}).items()})
+        prev_start_s[c] = f.start_s
         seq.rows.append(row)
     return seq
 
 
 def _scalar_info(info) -> dict:
-    """A method's ``frame_info`` dict with values made parquet-friendly scalars (lists are joined)."""
+    """Declared outputs made parquet-friendly scalars (lists are joined)."""
     if not isinstance(info, dict):
         return {}
     out = {}
@@ -371,7 +452,8 @@ def saved_frames(candidates: list[int]) -> list[int]:
 # ------------------------------------------------------------------------------------------------------- run
 
 SUMMARY_COLUMNS = ("frame_ms", "latency_ms", "frame_interval_ms", "staleness_ms", "client_ms", "server_ms",
-                   "network_ms", "bytes_down", "bytes_up", "rays", "pixels", *METRICS,
+                   "network_ms", "bytes_down", "bytes_up", "rays", "pixels", "work_taps", "work_points",
+                   "work_codec_bytes", *METRICS,
                    *(f"zl_{m}" for m in METRICS))
 
 
@@ -381,10 +463,40 @@ def run_location(cfg: dict, results_root) -> tuple[Path, str, dict]:
     return Path(results_root) / results.run_dir_name(cfg, key), key, env
 
 
+def prepared_data(cls, cfg: dict, scene, tracer, results_root: Path, env: dict) -> tuple:
+    """The method's prepare() output, computed once per (method, params, scene, backend, resolution, seed, code)
+    and shared by runs that differ only in network, protocol or client count.
+
+    Cached as a pickle under ``<results>/.prepared/<key>.pkl``; returns (data, prepare_ms, reused, key). The
+    prepare_ms of a reused result is the time the original computation took.
+    """
+    import pickle
+
+    key = results.run_key({k: v for k, v in cfg.items() if k not in NOT_PREPARE_KEYS}, env)[:32]
+    path = results_root / PREPARED_DIR / f"{key}.pkl"
+    if path.is_file():
+        with open(path, "rb") as fh:
+            doc = pickle.load(fh)
+        return doc["data"], doc["prepare_ms"], True, key
+    method = cls(cfg["params"])
+    # The server prepares offline; it has the scene but not the clients' camera paths.
+    server_scene = scene_view(scene, ServerCamera(scene.camera, 0))
+    t = time.perf_counter()
+    data = method.prepare(server_scene, tracer)
+    prepare_ms = 1e3 * (time.perf_counter() - t)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fileio.write_bytes(path, pickle.dumps({"data": data, "prepare_ms": prepare_ms}, protocol=pickle.HIGHEST_PROTOCOL))
+    return data, prepare_ms, False, key
+
+
+PREPARED_DIR = ".prepared"
+
+
 def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) -> dict:
     """Runs one validated config (from :func:`make_config`) into the results store.
 
-    Returns ``{"run_dir", "skipped", "summary"}``; a complete run with the same key is skipped.
+    Returns ``{"run_dir", "skipped", "summary"}``; a complete run with the same key is skipped unless
+    ``force``.
     """
     import pandas as pd
 
@@ -396,46 +508,50 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     cls = spec.load()
     scene = load_scene(cfg["scene"])
     tracer = make_tracer(cfg["backend"], scene)
-    method = cls(cfg["params"])
-
-    t = time.perf_counter()
-    method.prepare(scene, tracer)
-    prepare_ms = 1e3 * (time.perf_counter() - t)
+    n_clients = int(cfg.get("clients", 1))
+    prepared, prepare_ms, prepare_reused, prepare_key = prepared_data(cls, cfg, scene, tracer, Path(results_root),
+                                                                       env)
 
     q_frames = quality_frames(cfg["frames"], int(cfg["quality_every"]))
+    q_clients = list(range(n_clients)) if int(cfg["quality_clients"]) < 0 else \
+        list(range(min(n_clients, int(cfg["quality_clients"]))))
     keep_frames = saved_frames(q_frames or list(range(cfg["frames"])))
     keep = set(q_frames) | set(keep_frames)
-    main = simulate(method, scene, tracer, cfg, zero_latency=cfg["net"] == "ideal", keep=keep,
-                    desc=f"{method.name} {cfg['net']}")
+    main = simulate(cls, scene, tracer, cfg, zero_latency=cfg["net"] == "ideal" and not cfg.get("server_net"),
+                    keep=keep, prepared=prepared, desc=f"{cls.name} {cfg['net']}",
+                    keep_clients=set(q_clients) | {0})
     # The zero-latency run is the reference for the error that distribution adds; a method without messages
     # or a run on the ideal network would reproduce its own images, so it is skipped then.
-    needs_zl = method.uses_network and cfg["net"] != "ideal"
-    zl = zero_latency_images(method, scene, tracer, cfg, q_frames, Path(results_root), env) \
-        if needs_zl and q_frames else None
+    needs_zl = cls.uses_network and (cfg["net"] != "ideal" or cfg.get("server_net"))
+    zl = zero_latency_images(cls, scene, tracer, cfg, q_frames, q_clients, prepared, Path(results_root), env) \
+        if needs_zl and q_frames and q_clients else None
 
     frames = pd.DataFrame(main.rows)
     for m in METRICS:
         frames[m] = np.nan
         frames[f"zl_{m}"] = np.nan
+    row_of = {(int(c), int(i)): r for r, (c, i) in enumerate(zip(frames["client"], frames["frame"]))}
     references = {}
     spp = int(cfg["reference_spp"])
-    for i in progress(q_frames, desc="quality", unit="frame"):
-        test = main.images[i]
+    for c, i in progress([(c, i) for c in q_clients for i in q_frames], desc="quality", unit="frame"):
+        r = row_of[(c, i)]
+        test = main.images[(c, i)]
         if spp > 0:
-            ref = reference_image(scene, float(frames.at[i, "t_s"]), cfg["resolution"], spp,
-                                  int(cfg["reference_max_depth"]))
-            references[i] = ref
+            # The reference sees the scene from this client's pose.
+            ref = reference_image(scene_view(scene, client_camera(scene.camera, c, n_clients)),
+                                  float(frames.at[r, "t_s"]), cfg["resolution"], spp, int(cfg["reference_max_depth"]))
+            references[(c, i)] = ref
             for m, v in compare_images(ref, test, cfg["exposure"]).items():
                 if m in METRICS:
-                    frames.at[i, m] = float(v)
+                    frames.at[r, m] = float(v)
         if zl is None:
             # This run is its own zero-latency run (ideal network, or a method without messages).
             for m, v in IDENTICAL.items():
-                frames.at[i, f"zl_{m}"] = v
+                frames.at[r, f"zl_{m}"] = v
             continue
-        for m, v in compare_images(zl[i], test, cfg["exposure"]).items():
+        for m, v in compare_images(zl[(c, i)], test, cfg["exposure"]).items():
             if m in METRICS:
-                frames.at[i, f"zl_{m}"] = float(v)
+                frames.at[r, f"zl_{m}"] = float(v)
 
     timeline = main.timeline
     msgs = [e for e in timeline.events if e.kind == "message"]
@@ -445,19 +561,25 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     summary = {
         "schema_version": results.SCHEMA_VERSION, "run_key": key, "method": cfg["method"],
         "variant": cfg["variant"], "mode": cls.mode, "scene": cfg["scene"], "net": cfg["net"],
+        "server_net": cfg.get("server_net"), "clients": n_clients,
         "protocol": cfg["protocol"], "resolution": cfg["resolution"], "frames": cfg["frames"],
-        "prepare_ms": prepare_ms, "simulated_s": duration_s, "fps": cfg["frames"] / duration_s,
+        "prepare_ms": prepare_ms, "prepare_reused": prepare_reused, "prepare_key": prepare_key,
+        "simulated_s": duration_s, "fps": cfg["frames"] / duration_s,
         "bytes_down": bytes_down, "bytes_up": bytes_up,
+        "bytes_down_per_client": bytes_down / n_clients, "bytes_up_per_client": bytes_up / n_clients,
         "bandwidth_mbps": 8e-6 * (bytes_down + bytes_up) / duration_s,
         "bandwidth_down_mbps": 8e-6 * bytes_down / duration_s, "bandwidth_up_mbps": 8e-6 * bytes_up / duration_s,
         "lost_bytes": sum(e.lost_bytes for e in msgs), "incomplete_messages": sum(not e.complete for e in msgs),
         "reordered_sends": timeline.reordered_sends, "updates": len(main.update_rows),
-        "rays": int(frames["rays"].sum()), "quality_frames": q_frames, "saved_frames": keep_frames,
-        "zero_latency_run": zl is not None,
+        "rays": int(frames["rays"].sum()), "quality_frames": q_frames, "quality_clients": q_clients,
+        "saved_frames": keep_frames, "zero_latency_run": zl is not None,
         "stats": results.summarize_frames(frames, SUMMARY_COLUMNS),
     }
+    if main.update_rows:
+        ups = pd.DataFrame(main.update_rows)
+        summary["server_ms_per_update"] = float(ups["server_ms"].mean())
     config_doc = {"schema_version": results.SCHEMA_VERSION, "run_key": key, "config": cfg,
-                  "method_str": str(method), "method_mode": cls.mode, "seed": cfg["seed"],
+                  "method_str": str(cls(cfg["params"])), "method_mode": cls.mode, "seed": cfg["seed"],
                   "backend": {"name": cfg["backend"], **_describe(tracer)}, "network": _describe_net(cfg),
                   **env}
 
@@ -467,11 +589,15 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
         if main.update_rows:
             w.write_table("updates.parquet", pd.DataFrame(main.update_rows))
         w.write_table("events.parquet", pd.DataFrame([_event_row(e) for e in timeline.events]))
-        for i in keep_frames:
-            write_exr(w.path(f"images/frame_{i:04d}.exr"), main.images[i])
-            write_png(w.path(f"images/frame_{i:04d}.png"), main.images[i], cfg["exposure"])
-            if i in references:
-                write_png(w.path(f"images/reference_{i:04d}.png"), references[i], cfg["exposure"])
+        for c in sorted({0, *q_clients}):
+            tag = "" if c == 0 else f"client{c}_"
+            for i in keep_frames:
+                if (c, i) not in main.images:
+                    continue
+                write_exr(w.path(f"images/{tag}frame_{i:04d}.exr"), main.images[(c, i)])
+                write_png(w.path(f"images/{tag}frame_{i:04d}.png"), main.images[(c, i)], cfg["exposure"])
+                if (c, i) in references:
+                    write_png(w.path(f"images/{tag}reference_{i:04d}.png"), references[(c, i)], cfg["exposure"])
         final = w.commit(summary)
     return {"run_dir": str(final), "skipped": False, "summary": summary}
 
@@ -479,36 +605,39 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
 ZERO_LATENCY_DIR = ".zero-latency"
 
 
-def zero_latency_images(method, scene, tracer, cfg: dict, q_frames: list, results_root: Path, env: dict) -> dict:
+def zero_latency_images(cls, scene, tracer, cfg: dict, q_frames: list, q_clients: list, prepared,
+                        results_root: Path, env: dict) -> dict:
     """The zero-latency run's images of the quality frames, shared by runs that differ only in the network.
 
-    Without a network, net and protocol cannot change the images, so the sequence is computed once per
-    (method, params, scene, backend, resolution, frames, seed, clock) and cached as .npy under
-    ``<results>/.zero-latency/<key>/`` (exact float32; each file written atomically).
+    Without a network, net, protocol and the server's link cannot change the images, so the sequence is
+    computed once per (method, params, scene, backend, resolution, frames, clients, seed, clock) and cached as
+    .npy under ``<results>/.zero-latency/<key>/`` (exact float32; each file written atomically).
     """
-    zl_cfg = {k: v for k, v in cfg.items() if k not in ("net", "protocol", "message_timeout_ms")}
+    zl_cfg = {k: v for k, v in cfg.items() if k not in ("net", "protocol", "message_timeout_ms", "server_net",
+                                                        "quality_clients")}
     folder = results_root / ZERO_LATENCY_DIR / results.run_key(zl_cfg, env)[:32]
-    files = {i: folder / f"frame_{i:04d}.npy" for i in q_frames}
+    files = {(c, i): folder / (f"frame_{i:04d}.npy" if c == 0 else f"client{c}_frame_{i:04d}.npy")
+             for c in q_clients for i in q_frames}
     if all(f.is_file() for f in files.values()):
-        return {i: np.load(f) for i, f in files.items()}
+        return {k: np.load(f) for k, f in files.items()}
     zl_cfg = dict(cfg, protocol="tcp")
-    seq = simulate(method, scene, tracer, zl_cfg, zero_latency=True, keep=set(q_frames),
-                   desc=f"{method.name} zero-latency")
+    seq = simulate(cls, scene, tracer, zl_cfg, zero_latency=True, keep=set(q_frames), prepared=prepared,
+                   desc=f"{cls.name} zero-latency", keep_clients=set(q_clients))
     folder.mkdir(parents=True, exist_ok=True)
-    for i, f in files.items():
-        tmp = f.with_name(f".{f.name}.{os.getpid()}.tmp")
-        with open(tmp, "wb") as fh:
-            np.save(fh, seq.images[i])
-        os.replace(tmp, f)
+    for k, f in files.items():
+        buf = io.BytesIO()
+        np.save(buf, seq.images[k])
+        fileio.write_bytes(f, buf.getvalue())
     return seq.images
 
 
 def _event_row(e) -> dict:
-    return {"loop": e.loop, "index": e.index, "name": e.name, "kind": e.kind, "place": e.place,
+    return {"client": e.client, "loop": e.loop, "index": e.index, "name": e.name, "kind": e.kind, "place": e.place,
             "ready_s": e.ready_s, "start_s": e.start_s, "end_s": e.end_s, "binding": e.binding, "rays": e.rays,
             "pixels": e.pixels, "size_bytes": e.size_bytes, "delivered_bytes": e.delivered_bytes,
             "lost_bytes": e.lost_bytes, "retransmissions": e.retransmissions, "complete": e.complete,
-            "protocol": e.protocol, "wall_ms": e.wall_ms}
+            "protocol": e.protocol, "wall_ms": e.wall_ms,
+            **{f"work_{k}": e.work.get(k, 0) for k in WORK_KINDS[1:]}}
 
 
 def _describe(tracer) -> dict:
@@ -520,6 +649,4 @@ def _describe(tracer) -> dict:
 
 
 def _describe_net(cfg: dict):
-    link = make_link(cfg["net"], "down", cfg["seed"])
-    describe = getattr(link, "describe", None)
-    return describe() if callable(describe) else cfg["net"]
+    return make_network(cfg["net"], cfg.get("clients", 1), cfg.get("server_net"), cfg["seed"]).describe()

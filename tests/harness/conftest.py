@@ -29,7 +29,11 @@ class FakeTracer:
 
 
 def fake_scene():
-    camera = SimpleNamespace(fps=30.0, frame_time_s=lambda i: i / 30.0)
+    from suite.core.scene.model import CameraKey, CameraPath
+
+    # The camera moves along x by 1 unit per second over 4 s, so a pose says when it was sampled.
+    camera = CameraPath([CameraKey(0.0, [0.0, 0.0, 5.0], [0.0, 0.0, 0.0]), CameraKey(4.0, [4.0, 0.0, 5.0], [4.0, 0.0, 0.0])],
+                        fov_deg=45.0, resolution=(16, 8), fps=30.0)
     return SimpleNamespace(camera=camera, is_dynamic=False)
 
 
@@ -64,8 +68,6 @@ def fake_core(monkeypatch):
     monkeypatch.setattr(runner, "compare_images", fake_compare)
     monkeypatch.setattr(runner, "write_exr", fake_write)
     monkeypatch.setattr(runner, "write_png", fake_write)
-    # the fallback link, so that the tests do not depend on netsim's state
-    monkeypatch.setattr(runner, "_netsim", lambda: None)
     return runner
 
 

@@ -33,14 +33,14 @@ def test01_dask_local_cluster_sweep_matches_the_serial_sweep(fake_config, tmp_pa
 
 def test02_a_failing_run_is_reported_and_the_sweep_goes_on(fake_config, fake_core, tmp_path, monkeypatch):
     configs = _configs(fake_config)[:2]
-    real = fake_core.make_link
+    real = fake_core.make_network
 
-    def broken_for_delayed(net, direction, seed):
+    def broken_for_delayed(net, clients, server_net, seed):
         if net != "ideal":
             raise RuntimeError("link exploded")
-        return real(net, direction, seed)
+        return real(net, clients, server_net, seed)
 
-    monkeypatch.setattr(fake_core, "make_link", broken_for_delayed)
+    monkeypatch.setattr(fake_core, "make_network", broken_for_delayed)
     outcomes = executor.sweep(configs, tmp_path)
     assert outcomes[0]["error"] is None and "link exploded" in outcomes[1]["error"]
 

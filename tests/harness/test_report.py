@@ -97,3 +97,26 @@ def test_netsim_validation_is_summarised_per_transport(tmp_path):
     html = report.netsim_validation_section(tmp_path, csv)
     assert "netsim against ns-3" in html and (tmp_path / "netsim_validation.csv").exists()
     assert report.netsim_validation_section(tmp_path, tmp_path / "missing.csv") == ""
+
+
+def test07_one_loader_imports_a_methods_files_and_never_serves_another_folders_copy(tmp_path, monkeypatch):
+    import shutil
+    from pathlib import Path
+
+    from suite.errors import UserError
+    from suite.harness import registry
+
+    fake_methods = Path(__file__).parent / "fake_methods"
+    for k in (1, 2):  # the same method name in two roots, with different report.py files
+        root = tmp_path / f"methods{k}"
+        shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
+        (root / "synthetic_sync" / "report.py").write_text(f"def section(results_df, run_dirs):\n    return '{k}'\n")
+    for k in (1, 2, 1):
+        monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(tmp_path / f"methods{k}"))
+        assert registry.load_module("synthetic_sync", "report").section(None, []) == str(k)
+    assert registry.load_module("synthetic_sync", "report") is registry.load_module("synthetic_sync", "report")
+    with pytest.raises(UserError, match="has no bench.py"):
+        registry.load_module("synthetic_sync", "bench")
+    # the project's own methods import as a package, the same module the CLI's bench hook and the builder get
+    from methods.visibility_bitmap import report as vb_report
+    assert registry.load_module("visibility_bitmap", "report") is vb_report

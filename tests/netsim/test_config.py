@@ -7,7 +7,7 @@ import pytest
 
 import netsim
 from netsim.traces import load_mahimahi, mean_rate_mbps
-from suite.errors import UserError
+from netsim.errors import NetsimError
 
 REQUIRED_PROFILES = ("ideal", "lan-home", "wan-50m", "wifi-40m", "dsl-3m", "lte", "5g-edge")
 
@@ -96,7 +96,7 @@ def test_a_dict_spec_works_like_an_inline_one():
     ("", "spec"),
 ])
 def test_impossible_settings_raise_a_user_error_naming_them(spec, named):
-    with pytest.raises(UserError, match=named):
+    with pytest.raises(NetsimError, match=named):
         netsim.make_network(spec)
 
 
@@ -107,17 +107,17 @@ def test_impossible_settings_raise_a_user_error_naming_them(spec, named):
     ({"size_bytes": 10, "deadline_s": 0.0}, "deadline"),
 ])
 def test_impossible_messages_raise_a_user_error_naming_them(kwargs, named):
-    with pytest.raises(UserError, match=named):
+    with pytest.raises(NetsimError, match=named):
         netsim.make_network("wan-50m").send(**kwargs)
 
 
 def test_send_times_must_not_go_backwards():
     net = netsim.make_network("wan-50m")
     net.send(100, at_s=1.0)
-    with pytest.raises(UserError, match="must not decrease"):
+    with pytest.raises(NetsimError, match="must not decrease"):
         net.send(100, at_s=0.5)
 
 
 def test_seed_must_be_an_integer():
-    with pytest.raises(UserError, match="seed"):
+    with pytest.raises(NetsimError, match="seed"):
         netsim.make_network("wan-50m", seed="x")

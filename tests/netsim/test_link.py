@@ -111,8 +111,8 @@ def test_unused_trace_opportunities_are_lost(tmp_path):
 
 def test_mahimahi_parsing_reads_timestamps_and_rejects_bad_lines():
     assert list(parse_mahimahi("1\n1\n3\n\n5\n")) == [1, 1, 3, 5]
-    from suite.errors import UserError
+    from netsim.errors import NetsimError
 
     for text, message in [("", "empty"), ("1\nx\n", "line 2"), ("3\n2\n", "non-decreasing"), ("0\n", "> 0")]:
-        with pytest.raises(UserError, match=message):
+        with pytest.raises(NetsimError, match=message):
             parse_mahimahi(text)

@@ -74,9 +74,11 @@ class SceneBuilder:
         self._camera: CameraPath | None = None
 
     # --- materials and objects ----------------------------------------------------------------
-    def add_material(self, name: str, albedo, emission=0.0, kind: str = "diffuse", texture=None) -> int:
+    def add_material(self, name: str, albedo, emission=0.0, kind: str = "diffuse", texture=None, **params) -> int:
         """Adds a material; ``albedo`` is linear RGB reflectance, ``emission`` radiance (W/m^2/sr), ``texture``
-        an optional (H, W, 3) linear RGB albedo map (v = 0 at the bottom row). Returns its id."""
+        an optional (H, W, 3) linear RGB albedo map (v = 0 at the bottom row). ``params`` are further
+        :class:`~suite.core.scene.model.Material` fields (``specular_reflectance``, ``int_ior``, ``roughness``,
+        ``distribution``, ``twosided``, ``opacity_texture``, ...). Returns its id."""
         if any(m.name == name for m in self.materials):
             raise UserError(f"material '{name}' is defined twice")
         tex = None if texture is None else np.ascontiguousarray(texture, np.float32)
@@ -84,7 +86,7 @@ class SceneBuilder:
             raise UserError(f"material '{name}': texture must be an (H, W, 3) array, got shape {tex.shape}")
         self.materials.append(Material(name=name, albedo=_vec3(albedo, f"material '{name}' albedo"),
                                        albedo_texture=tex, emission=_vec3(emission, f"material '{name}' emission"),
-                                       kind=kind))
+                                       kind=kind, **params))
         return len(self.materials) - 1
 
     def new_object(self, name: str) -> int:
@@ -241,6 +243,31 @@ class SceneBuilder:
                 fan = fan[:, [0, 2, 1]]
             ids.append(self.add_mesh(cap_pos, np.repeat(up[None], len(cap_pos), 0), cap_uv, fan, material, object))
         return np.concatenate(ids)
+
+    def add_sphere(self, center, radius: float, segments: int, material, object=None) -> np.ndarray:
+        """A UV sphere with smooth outward normals: ``segments`` around, ``segments / 2`` rings, single-vertex
+        poles; u runs around (from +x toward +z), v from the north (+y) pole."""
+        c = _vec3(center, "sphere center")
+        if radius <= 0 or segments < 4:
+            raise UserError(f"sphere needs radius > 0 and >= 4 segments (got {radius}, {segments})")
+        rings = max(segments // 2, 2)
+        theta = np.linspace(0.0, np.pi, rings + 1)[1:-1]
+        phi = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+        st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+        ring = np.stack([st * np.cos(phi), ct * np.ones_like(phi), st * np.sin(phi)], axis=-1).reshape(-1, 3)
+        unit = np.concatenate([[[0.0, 1.0, 0.0]], ring, [[0.0, -1.0, 0.0]]])
+        south = len(unit) - 1
+        faces = [(0, 1 + (j + 1) % segments, 1 + j) for j in range(segments)]
+        for r in range(rings - 2):
+            a, b = 1 + r * segments, 1 + (r + 1) * segments
+            for j in range(segments):
+                j1 = (j + 1) % segments
+                faces += [(a + j, a + j1, b + j), (a + j1, b + j1, b + j)]
+        last = 1 + (rings - 2) * segments
+        faces += [(last + j, last + (j + 1) % segments, south) for j in range(segments)]
+        uv = np.stack([np.arctan2(unit[:, 2], unit[:, 0]) / (2 * np.pi) % 1.0,
+                       np.arccos(np.clip(unit[:, 1], -1, 1)) / np.pi], -1)
+        return self.add_mesh(c + radius * unit, unit, uv, np.asarray(faces), material, object)
 
     # --- lights -------------------------------------------------------------------------------
     def add_point_light(self, name: str, position, intensity) -> int:

@@ -16,28 +16,137 @@ import numpy as np
 
 from suite.errors import UserError
 
-MATERIAL_KINDS = ("diffuse", "mirror", "glass", "alpha")
+# What a surface does with light (``Material.kind``), following the Mitsuba plugin it exports to:
+#   diffuse          Lambertian reflectance ``albedo`` (texture allowed); shaded on both sides (`twosided` `diffuse`)
+#   mirror           smooth conductor (`conductor`): specular reflectance x conductor Fresnel term (eta + i k)
+#   glass            smooth dielectric (`dielectric`): Fresnel-weighted specular reflection and refraction
+#   rough_conductor  glossy metal (`roughconductor`): microfacet BRDF, roughness ``roughness`` (Mitsuba's alpha)
+#   rough_plastic    glossy plastic (`roughplastic`): microfacet coating over a Lambertian base ``albedo``
+#   alpha            kept for compatibility: shaded exactly like ``diffuse``
+# Alpha testing is not a kind: any material with an ``opacity_texture`` is alpha-tested (Mitsuba `mask`).
+MATERIAL_KINDS = ("diffuse", "mirror", "glass", "alpha", "rough_conductor", "rough_plastic")
+# Codes of the shading kinds in G-buffers (``GBuffer.kind``); -1 marks background pixels. "alpha" shades as diffuse.
+KIND_CODES = {"diffuse": 0, "mirror": 1, "glass": 2, "rough_conductor": 3, "rough_plastic": 4}
+# Kinds whose reflection is a Dirac delta (a path continues through them; no light sampling there).
+SPECULAR_KINDS = ("mirror", "glass")
+# Kinds with a microfacet lobe (light sampling with the full BRDF).
+GLOSSY_KINDS = ("rough_conductor", "rough_plastic")
+MICROFACET_DISTRIBUTIONS = ("beckmann", "ggx")
+# Alpha-test threshold: a surface point exists where its opacity >= 0.5, like Quake III's `alphaFunc GE128`.
+DEFAULT_ALPHA_THRESHOLD = 0.5
+# Mitsuba's default indices of refraction (`lookup_ior`): bk7 glass, polypropylene, air.
+IOR_BK7 = 1.5046
+IOR_POLYPROPYLENE = 1.49
+IOR_AIR = 1.000277
 
 
 @dataclass
 class Material:
-    """A surface description. ``kind`` marks non-diffuse surfaces for methods that handle them."""
+    """A surface description: a BSDF ``kind`` with its parameters, optional emission and alpha-tested opacity.
+
+    Parameters follow the Mitsuba plugins (same names, same defaults); those a kind does not use are ignored:
+
+    * ``albedo`` / ``albedo_texture``: diffuse reflectance (diffuse, alpha) and rough_plastic's
+      ``diffuse_reflectance``.
+    * ``specular_reflectance``: mirror, rough_conductor, glass, rough_plastic; ``specular_transmittance``: glass.
+    * ``int_ior`` / ``ext_ior``: glass and rough_plastic (relative IOR ``eta = int_ior / ext_ior``; None picks
+      Mitsuba's default: bk7 / polypropylene inside, air outside).
+    * ``conductor_eta`` / ``conductor_k``: complex IOR of mirror and rough_conductor per RGB channel; the default
+      (0, 1) is Mitsuba's ``conductor`` default, a Fresnel factor of exactly 1 (a perfect mirror).
+    * ``roughness``: Mitsuba's ``alpha`` of rough_conductor / rough_plastic, with ``distribution`` "beckmann"
+      (Mitsuba's default) or "ggx"; ``nonlinear``: rough_plastic's option of the same name.
+    * ``twosided``: whether mirror / rough_conductor / rough_plastic reflect on the back side too (Mitsuba's
+      `twosided` adapter); without it the back side is black, as Mitsuba's one-sided plugins are. Diffuse
+      materials are always shaded on both sides; glass always refracts on both.
+    * ``opacity_texture``: (H, W, 1) float32 opacity in Mitsuba's bitmap layout (row 0 at v = 0), looked up
+      bilinearly; where it is below ``alpha_threshold`` the surface does not exist for any ray (alpha test).
+    """
 
     name: str
     albedo: np.ndarray  # (3,) linear RGB reflectance, used when there is no texture
     albedo_texture: np.ndarray | None = None  # (H, W, 3) float32 linear RGB; row 0 at v = 0 (Mitsuba bitmap layout)
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))  # (3,) radiance
     kind: str = "diffuse"
+    specular_reflectance: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+    specular_transmittance: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+    int_ior: float | None = None
+    ext_ior: float | None = None
+    conductor_eta: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    conductor_k: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+    roughness: float = 0.1
+    distribution: str = "beckmann"
+    nonlinear: bool = False
+    twosided: bool = False
+    opacity_texture: np.ndarray | None = None
+    alpha_threshold: float = DEFAULT_ALPHA_THRESHOLD
 
     def __post_init__(self):
         self.albedo = np.asarray(self.albedo, np.float32).reshape(3)
         self.emission = np.asarray(self.emission, np.float32).reshape(3)
         if self.kind not in MATERIAL_KINDS:
             raise UserError(f"material '{self.name}': unknown kind '{self.kind}' (choose from {MATERIAL_KINDS})")
+        for attr in ("specular_reflectance", "specular_transmittance", "conductor_eta", "conductor_k"):
+            value = np.asarray(getattr(self, attr), np.float32).reshape(-1)
+            if value.size == 1:
+                value = np.repeat(value, 3)
+            if value.shape != (3,) or not np.isfinite(value).all() or (value < 0).any():
+                raise UserError(f"material '{self.name}': {attr} must be 1 or 3 finite non-negative numbers")
+            setattr(self, attr, value)
+        if self.int_ior is None:
+            self.int_ior = IOR_POLYPROPYLENE if self.kind == "rough_plastic" else IOR_BK7
+        if self.ext_ior is None:
+            self.ext_ior = IOR_AIR
+        self.int_ior, self.ext_ior = float(self.int_ior), float(self.ext_ior)
+        if self.kind in ("glass", "rough_plastic") and not (self.int_ior > 0 and self.ext_ior > 0
+                                                            and self.int_ior != self.ext_ior):
+            raise UserError(f"material '{self.name}': int_ior and ext_ior must be positive and differ "
+                            f"(got {self.int_ior}, {self.ext_ior})")
+        self.roughness = float(self.roughness)
+        if not (np.isfinite(self.roughness) and self.roughness > 0):
+            raise UserError(f"material '{self.name}': roughness (alpha) must be positive, got {self.roughness}")
+        self.distribution = str(self.distribution).lower()
+        if self.distribution not in MICROFACET_DISTRIBUTIONS:
+            raise UserError(f"material '{self.name}': unknown microfacet distribution '{self.distribution}' "
+                            f"(choose from {MICROFACET_DISTRIBUTIONS})")
+        self.nonlinear, self.twosided = bool(self.nonlinear), bool(self.twosided)
+        self.alpha_threshold = float(self.alpha_threshold)
+        if not 0.0 < self.alpha_threshold <= 1.0:
+            raise UserError(f"material '{self.name}': alpha_threshold must be in (0, 1], got {self.alpha_threshold}")
+        if self.opacity_texture is not None:
+            tex = np.asarray(self.opacity_texture, np.float32)
+            if tex.ndim == 2:
+                tex = tex[..., None]
+            if tex.ndim != 3 or tex.shape[2] != 1 or tex.size == 0 or not np.isfinite(tex).all():
+                raise UserError(f"material '{self.name}': opacity_texture must be a finite (H, W) or (H, W, 1) "
+                                f"array, got shape {np.shape(self.opacity_texture)}")
+            self.opacity_texture = np.ascontiguousarray(tex)
 
     @property
     def is_emissive(self) -> bool:
         return bool(np.any(self.emission > 0))
+
+    @property
+    def shading_kind(self) -> str:
+        """The BSDF the kernels evaluate: ``kind``, with the legacy "alpha" meaning "diffuse"."""
+        return "diffuse" if self.kind == "alpha" else self.kind
+
+    @property
+    def is_specular(self) -> bool:
+        """Mirror or glass: reflection (and refraction) along single directions."""
+        return self.kind in SPECULAR_KINDS
+
+    @property
+    def is_glossy(self) -> bool:
+        return self.kind in GLOSSY_KINDS
+
+    @property
+    def is_alpha_tested(self) -> bool:
+        return self.opacity_texture is not None
+
+    @property
+    def eta(self) -> float:
+        """Relative index of refraction int_ior / ext_ior (glass, rough_plastic)."""
+        return self.int_ior / self.ext_ior
 
 
 @dataclass
@@ -49,6 +158,30 @@ class PointLight:
     def __post_init__(self):
         self.position = np.asarray(self.position, np.float64).reshape(3)
         self.intensity = np.asarray(self.intensity, np.float32).reshape(3)
+
+
+@dataclass
+class TriangleLights:
+    """The scene's emissive triangles as a list of one-sided area lights (Mitsuba's `area` emitter), at one time.
+
+    Row i describes face ``faces[i]``: its corners, its unit normal on the emitting side (the side the stored
+    vertex normals point to, whatever the winding), its radiance L_e (W/m^2/sr) and area (m^2). A light source
+    of many small triangles (e.g. Quake III surface lights) is just many rows.
+    """
+
+    faces: np.ndarray  # (E,) int32 global face ids
+    vertices: np.ndarray  # (E, 3, 3) float64 corners
+    normal: np.ndarray  # (E, 3) float64 unit normal of the emitting side
+    radiance: np.ndarray  # (E, 3) float64
+    area: np.ndarray  # (E,) float64
+
+    def __len__(self) -> int:
+        return int(len(self.faces))
+
+    @property
+    def power(self) -> np.ndarray:
+        """(E,) emitted power per triangle: pi * area * mean radiance (W, RGB mean)."""
+        return np.pi * self.area * self.radiance.mean(axis=-1) if len(self.faces) else np.zeros(0)
 
 
 @dataclass
@@ -222,6 +355,30 @@ class Scene:
         """Indices of faces with an emissive material (the triangle area lights)."""
         emissive = np.array([m.is_emissive for m in self.materials], bool)
         return np.nonzero(emissive[self.face_material])[0].astype(np.int32)
+
+    def area_light_triangles(self, t_s: float = 0.0) -> TriangleLights:
+        """Every emissive triangle as an area light at time ``t_s`` (see :class:`TriangleLights`)."""
+        faces = self.emissive_faces()
+        tri = self.triangles(self.positions_at(t_s))[faces].astype(np.float64)
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = 0.5 * np.linalg.norm(cross, axis=-1)
+        ng = cross / np.maximum(2.0 * area, 1e-300)[:, None]
+        # Emission side follows the stored vertex normals (the mesh's intended front), whatever the winding.
+        vn = self.normals_at(t_s)[self.faces[faces]].astype(np.float64).sum(axis=1)
+        normal = np.where(np.einsum("ij,ij->i", ng, vn)[:, None] < 0, -ng, ng)
+        radiance = np.stack([self.materials[m].emission for m in self.face_material[faces]]).astype(np.float64) \
+            if len(faces) else np.zeros((0, 3))
+        return TriangleLights(faces, tri, normal, radiance, area)
+
+    def face_kind_codes(self) -> np.ndarray:
+        """(F,) int8 shading-kind code per face (:data:`KIND_CODES`; the legacy kind "alpha" is diffuse)."""
+        table = np.array([KIND_CODES[m.shading_kind] for m in self.materials], np.int8)
+        return table[self.face_material]
+
+    @property
+    def has_alpha_tested(self) -> bool:
+        """True when some material is alpha-tested (tracers then skip its transparent texels)."""
+        return any(m.is_alpha_tested for m in self.materials)
 
     def face_albedo(self) -> np.ndarray:
         """(F, 3) constant albedo per face (textures are looked up separately by UV)."""

@@ -118,6 +118,9 @@ class Tracer:
         self._scratch: dict = {}  # ray buffers reused across queries (consumed within each call)
         lo, hi = scene.bounds()
         self.shift = 0.5 * (lo.astype(np.float64) + hi.astype(np.float64))
+        from suite.core.trace.alpha import AlphaTest
+
+        self._alpha = AlphaTest.for_scene(scene)  # None unless a material is alpha-tested
 
     def local_positions(self, positions: np.ndarray) -> np.ndarray:
         """Vertex positions in the tracing frame (float32)."""
@@ -130,22 +133,80 @@ class Tracer:
         if len(d) == 0:
             z = np.zeros(0, np.float32)
             return Hits(z, np.zeros(0, np.int32), z, z)
+        t, prim, u, v = self._closest(o, d, length)
+        if self._alpha is not None:
+            t, prim, u, v = self._skip_transparent(o, d, length, t, prim, u, v)
+        if np.ndim(tmin) != 0 or tmin > 0:
+            t += tmin_a  # inf stays inf
+        return Hits(t, prim, u, v)
+
+    def _closest(self, o, d, length):
+        """Backend closest-hit query on tracing-frame rays, misses normalised (t = inf, prim = -1, u = v = 0)."""
         t, prim, u, v = self._intersect(o, d, length)
         t, u, v = (_writable(x) for x in (t, u, v))
         prim = np.asarray(prim, np.int32)
-        if np.ndim(tmin) != 0 or tmin > 0:
-            t += tmin_a  # inf stays inf
         if not self.normalized_hits:
             miss = prim < 0
             t[miss], u[miss], v[miss] = np.inf, 0.0, 0.0
-        return Hits(t, prim, u, v)
+        return t, prim, u, v
+
+    def _skip_transparent(self, o, d, length, t, prim, u, v):
+        """Alpha test (:mod:`suite.core.trace.alpha`): rays whose hit is transparent are traced again from just
+        past it, until the hit is opaque, the ray leaves its interval or ``MAX_ALPHA_LAYERS`` are crossed.
+        ``t`` is relative to the tracing-frame origins ``o``; every re-traced ray counts in ``rays_intersect``."""
+        from suite.core.trace.alpha import MAX_ALPHA_LAYERS, step_past
+
+        rows = o.T if self.soa_origins else o  # (N, 3) view either way
+        todo = np.nonzero(self._alpha.transparent(prim, u, v))[0]
+        for _ in range(MAX_ALPHA_LAYERS):
+            if len(todo) == 0:
+                break
+            start = step_past(rows[todo], d[todo], t[todo].astype(np.float64))
+            remaining = length[todo].astype(np.float64) - start
+            gone = remaining <= 0
+            if gone.any():
+                out = todo[gone]
+                t[out], prim[out], u[out], v[out] = np.inf, -1, 0.0, 0.0
+                todo, start, remaining = todo[~gone], start[~gone], remaining[~gone]
+                if len(todo) == 0:
+                    break
+            o_next = (rows[todo].astype(np.float64) + d[todo].astype(np.float64) * start[:, None]).astype(np.float32)
+            if self.soa_origins:
+                o_next = np.ascontiguousarray(o_next.T)
+            self.counters["rays_intersect"] += len(todo)
+            t2, p2, u2, v2 = self._closest(o_next, np.ascontiguousarray(d[todo]), remaining.astype(np.float32))
+            t[todo] = np.where(p2 >= 0, start + t2, np.inf).astype(np.float32)
+            prim[todo], u[todo], v[todo] = p2, u2, v2
+            todo = todo[self._alpha.transparent(p2, u2, v2)]
+        return t, prim, u, v
+
+    def _occluded_alpha(self, o, d, length, occluded):
+        """Shadow rays through alpha-tested surfaces: a ray the backend found blocked is blocked only if a closest-hit
+        walk past its transparent hits (:meth:`_skip_transparent`) meets an opaque one within its length."""
+        idx = np.nonzero(occluded)[0]
+        if len(idx) == 0:
+            return occluded
+        rows = o.T if self.soa_origins else o
+        o_sub = np.ascontiguousarray(rows[idx])
+        if self.soa_origins:
+            o_sub = np.ascontiguousarray(o_sub.T)
+        d_sub, len_sub = np.ascontiguousarray(d[idx]), np.ascontiguousarray(length[idx])
+        self.counters["rays_intersect"] += len(idx)
+        t, prim, u, v = self._closest(o_sub, d_sub, len_sub)
+        _, prim, _, _ = self._skip_transparent(o_sub, d_sub, len_sub, t, prim, u, v)
+        out = np.asarray(occluded, bool).copy()
+        out[idx] = prim >= 0
+        return out
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
         o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins, self._scratch)
         self.counters["rays_occluded"] += len(d)
         if len(d) == 0:
             return np.zeros(0, bool)
-        return self._occluded(o, d, length)
+        occ = self._occluded(o, d, length)
+        if self._alpha is not None:
+            occ = self._occluded_alpha(o, d, length, occ)
+        return occ
 
     def occluded_local(self, o, d, length) -> np.ndarray:
         """``occluded`` for rays already in the tracing frame: float32 origins minus ``shift`` (shape (3, N) if
@@ -158,7 +219,10 @@ class Tracer:
         self.counters["rays_occluded"] += n
         if n == 0:
             return np.zeros(0, bool)
-        return self._occluded(o, d, length)
+        occ = self._occluded(o, d, length)
+        if self._alpha is not None:
+            occ = self._occluded_alpha(o, d, length, occ)
+        return occ
 
     def update(self, t_s: float) -> None:
         """Moves animated objects to their pose at ``t_s`` (no-op for static scenes)."""

@@ -27,6 +27,7 @@ def test02_every_part_runs_on_a_tiny_case_and_is_stored_for_the_report(tmp_path,
     assert "ratio" in printed and "R²" in printed and "stored:" in printed
     doc = json.loads((tmp_path / "bench" / "visibility_bitmap.json").read_text())
     assert doc == bench.load(tmp_path) and doc["schema_version"] == bench.SCHEMA_VERSION
+    assert {r["backend"] for r in doc["codecs"] + doc["lights"]} == {"embree"}
     t = doc["throughput"]
     assert t["rays"] > 0 and t["ratio"] == pytest.approx(t["stage_rays_per_s"] / t["raw_rays_per_s"])
     lin = doc["linearity"]
@@ -62,3 +63,34 @@ def test04_cli_runs_the_method_bench_and_refuses_unknown_parts(tmp_path, capsys)
     code = cli.main(["bench", "no_such_method"])
     err = capsys.readouterr().err
     assert code == 2 and "unknown benchmark 'no_such_method'" in err and "visibility_bitmap" in err
+
+
+def test05_a_stored_benchmark_records_the_environment_a_run_records(tmp_path):
+    from suite.harness import results
+
+    bench.store(tmp_path, {"throughput": {"ratio": 0.5}})
+    doc = bench.load(tmp_path)
+    env = results.environment()
+    # the same keys and facts as a run's config.json: package versions, host, git commit
+    assert doc["packages"] == env["packages"] and doc["host"] == env["host"] and doc["git"] == env["git"]
+    assert not list(tmp_path.glob("bench/.*"))  # written atomically: no temporary file left behind
+
+
+def test06_the_tracing_benchmark_prints_the_environment_with_its_figures(capsys, monkeypatch):
+    import sys
+    import types
+
+    from suite.harness import cli, results, runner
+
+    fake = types.ModuleType("suite.core.trace.bench")
+    rates = {"suite_rays_per_s": 2.0e6, "raw_rays_per_s": 4.0e6, "ratio": 0.5}
+    fake.run = lambda scene, backend: {"scene": "toy", "rays": 1000, "repeats": 5, "occluded": rates,
+                                       "intersect": rates}
+    monkeypatch.setitem(sys.modules, "suite.core.trace.bench", fake)
+    monkeypatch.setattr(runner, "backend_names", lambda: ["fake"])
+    monkeypatch.setattr(runner, "scene_names", lambda: ["toy"])
+    monkeypatch.setattr(runner, "load_scene", lambda spec: None)
+    assert cli.main(["bench", "tracing", "--scene", "toy", "--backend", "fake", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["occluded"]["ratio"] == 0.5 and doc["git"] == results.environment()["git"]
+    assert set(doc["packages"]) == set(results.PACKAGES) and doc["host"]["node"]

@@ -1,6 +1,7 @@
 """The pipeline end to end: bit-identical to Algorithm 3A when lossless, Figure 7's schedule, repairs under loss."""
 import math
 import tomllib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,8 @@ from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import transfer
 from methods.visibility_bitmap.method import VisibilityBitmap, decode_inputs, encode_inputs
 from suite.errors import UserError
-from suite.harness.method import Clock, Context
-from suite.harness.timeline import Delivery, IdealLink, Timeline
+from suite.harness.method import ClientCamera, Clock, Context, ServerCamera, scene_view
+from suite.harness.timeline import Timeline
 
 CONFIG = Path(__file__).resolve().parents[3] / "methods" / "visibility_bitmap" / "config.toml"
 RES = (48, 27)
@@ -25,6 +26,36 @@ def living_room():
 
     scene = load("living_room")
     return scene, make("embree", scene)
+
+
+@dataclass
+class Delivery:
+    arrival_s: float
+    delivered_bytes: int
+    lost_ranges: list = field(default_factory=list)
+    retransmissions: int = 0
+    complete: bool = True
+
+
+class IdealLink:
+    """Test double of a link: arrival = send + delay + size / bandwidth, no loss (exact, hand-computable)."""
+
+    def __init__(self, bandwidth_mbps: float = math.inf, delay_ms: float = 0.0):
+        self.bandwidth_mbps, self.delay_ms = float(bandwidth_mbps), float(delay_ms)
+
+    def send(self, size_bytes, direction="down", protocol="tcp", at_s=0.0, deadline_s=None):
+        transfer_s = 0.0 if math.isinf(self.bandwidth_mbps) else size_bytes * 8.0 / (self.bandwidth_mbps * 1e6)
+        return Delivery(at_s + self.delay_ms / 1e3 + transfer_s, int(size_bytes))
+
+
+class Links:
+    """A one-client network of two test-double links, in the shape of a netsim topology."""
+
+    def __init__(self, down, up):
+        self.links = {"down": down, "up": up}
+
+    def send(self, size_bytes, client=0, direction="down", protocol="tcp", at_s=0.0, deadline_s=None):
+        return self.links[direction].send(size_bytes, direction, protocol, at_s, deadline_s)
 
 
 class LossyLink(IdealLink):
@@ -50,16 +81,19 @@ def run(method, scene, tracer, zero_latency, protocol="tcp", link=None, frames=F
     Stage durations come from the work clock (rays and pixels), so schedules are the same on every machine.
     """
     link = link or IdealLink(bandwidth_mbps=100.0, delay_ms=2.0)
-    timeline = Timeline({"down": link, "up": up_link or IdealLink(100.0, 2.0)})
+    timeline = Timeline(Links(link, up_link or IdealLink(100.0, 2.0)))
     method.reset()
     images, contexts, prev_t = [], [], None
+    client_scene = scene_view(scene, ClientCamera(scene.camera, 0))
+    server_scene = scene_view(scene, ServerCamera(scene.camera, 0))
     for i in range(frames):
         t_s = scene.camera.frame_time_s(i)
         group = timeline.group("frame", i, i / 30.0)
-        ctx = Context(group, scene=scene, tracer=tracer, t_s=t_s, prev_t_s=prev_t, resolution=RES, seed=0,
-                      params=method.params, zero_latency=zero_latency, protocol=protocol, clock=Clock("work"))
+        ctx = Context(group, scene=client_scene, server_scene=server_scene, tracer=tracer, t_s=t_s, prev_t_s=prev_t,
+                      resolution=RES, seed=0, params=method.params, zero_latency=zero_latency, protocol=protocol,
+                      clock=Clock("work"), outputs=VisibilityBitmap.outputs)
         images.append(method.frame(ctx))
-        contexts.append((ctx, group, dict(method.frame_info)))
+        contexts.append((ctx, group, dict(ctx.outputs)))
         prev_t = t_s
     return images, contexts
 
@@ -68,7 +102,7 @@ def run(method, scene, tracer, zero_latency, protocol="tcp", link=None, frames=F
 def standalone(living_room):
     scene, tracer = living_room
     method = VisibilityBitmap({})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     return run(method, scene, tracer, zero_latency=True)[0]
 
 
@@ -84,7 +118,7 @@ def test01_lossless_transport_gives_an_image_bit_identical_to_standalone_3a(livi
         pytest.skip(unavailable_reason(codec.split("+")[-1]))
     scene, tracer = living_room
     method = VisibilityBitmap({"codec": codec, "layout": layout, "udp_slice_rows": 4})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     images, contexts = run(method, scene, tracer, zero_latency=False, protocol=protocol)
     for distributed, alone, (_, _, info) in zip(images, standalone, contexts):
         assert info["status"] == "ok"
@@ -94,7 +128,7 @@ def test01_lossless_transport_gives_an_image_bit_identical_to_standalone_3a(livi
 def test02_client_gbuffer_overlaps_the_server_as_in_figure_7(living_room):
     scene, tracer = living_room
     method = VisibilityBitmap({})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     # An instant up-link: the server starts at once, so the overlap does not hinge on the link's delay.
     _, contexts = run(method, scene, tracer, zero_latency=False, frames=1, up_link=IdealLink())
     ev = contexts[0][1].events
@@ -111,7 +145,7 @@ def test02_client_gbuffer_overlaps_the_server_as_in_figure_7(living_room):
 def test03_memory_transfers_are_modelled_from_raw_bitmap_bytes_and_bandwidth(living_room):
     scene, tracer = living_room
     method = VisibilityBitmap({"codec": "zstd", "gpu_to_cpu_mb_per_s": 100.0, "cpu_to_gpu_mb_per_s": 400.0})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     _, contexts = run(method, scene, tracer, zero_latency=False, frames=1)
     ev = contexts[0][1].events
     raw = bm.bitmap_nbytes(*RES, 3, "paper32")
@@ -127,7 +161,7 @@ def test04_udp_loss_repairs_only_the_lost_rows_with_lit(living_room, standalone)
 
     scene, tracer = living_room
     method = VisibilityBitmap({"udp_repair": "lit", "udp_slice_rows": 3})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     images, contexts = run(method, scene, tracer, zero_latency=False, protocol="udp",
                            link=LossyLink([(0.40, 0.45)]), frames=1)
     info = contexts[0][2]
@@ -148,10 +182,10 @@ def test04_udp_loss_repairs_only_the_lost_rows_with_lit(living_room, standalone)
 def test05_a_bitmap_that_never_arrives_marks_the_frame_bad_and_reuses_the_previous_frame(living_room):
     scene, tracer = living_room
     method = VisibilityBitmap({"udp_repair": "previous"})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     good, _ = run(method, scene, tracer, zero_latency=False, frames=1)
     method2 = VisibilityBitmap({"udp_repair": "lit"})
-    method2.prepare(scene, tracer)
+    method2.restore(method2.prepare(scene, tracer))
     images, contexts = run(method2, scene, tracer, zero_latency=False, link=LossyLink([], never_arrives=True),
                            frames=1)
     assert contexts[0][2]["status"] == "bad" and contexts[0][2]["rows_repaired"] == RES[1]
@@ -161,7 +195,7 @@ def test05_a_bitmap_that_never_arrives_marks_the_frame_bad_and_reuses_the_previo
 def test06_ambient_term_lifts_only_pixels_where_every_light_is_shadowed(living_room, standalone):
     scene, tracer = living_room
     method = VisibilityBitmap({"ambient": True, "ambient_radiance": 0.5})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     images, _ = run(method, scene, tracer, zero_latency=True, frames=1)
     from suite.core.gbuffer import render_gbuffer
     from suite.core.shading import point_light_visibility
@@ -268,7 +302,7 @@ def test13_an_unoccluded_floor_has_no_acne_and_a_finite_lit_image(light_position
     assert floor.sum() > 0.3 * floor.size
     assert vis[floor].all(), f"{int((~vis[floor]).sum())} floor pixels shadow themselves"
     method = VisibilityBitmap({"codec": "lz4"})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     images, _ = run(method, scene, tracer, zero_latency=False, frames=1)
     assert np.isfinite(images[0]).all() and (images[0][floor].max(axis=-1) > 0).all()
 
@@ -281,7 +315,7 @@ def test14_without_ambient_the_image_is_the_cores_direct_lighting(living_room):
 
     scene, tracer = living_room
     method = VisibilityBitmap({"codec": "zstd", "layout": "packed8"})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     images, _ = run(method, scene, tracer, zero_latency=False, frames=1)
     t_s = scene.camera.frame_time_s(0)
     g = render_gbuffer(scene, tracer, t_s, resolution=RES)
@@ -301,10 +335,12 @@ def test15_distributed_image_agrees_with_mitsuba_direct_within_its_noise(living_
     scene, tracer = living_room
     res, t_s = (64, 36), scene.camera.frame_time_s(0)
     method = VisibilityBitmap({"codec": "lz4", "layout": "packed8"})
-    method.prepare(scene, tracer)
-    timeline = Timeline({"down": IdealLink(100.0, 2.0), "up": IdealLink(100.0, 2.0)})
-    ctx = Context(timeline.group("frame", 0, 0.0), scene=scene, tracer=tracer, t_s=t_s, prev_t_s=None,
-                  resolution=res, seed=0, params=method.params, zero_latency=False, clock=Clock("work"))
+    method.restore(method.prepare(scene, tracer))
+    timeline = Timeline(Links(IdealLink(100.0, 2.0), IdealLink(100.0, 2.0)))
+    ctx = Context(timeline.group("frame", 0, 0.0), scene=scene_view(scene, ClientCamera(scene.camera, 0)),
+                  server_scene=scene_view(scene, ServerCamera(scene.camera, 0)), tracer=tracer, t_s=t_s,
+                  prev_t_s=None, resolution=res, seed=0, params=method.params, zero_latency=False,
+                  clock=Clock("work"), outputs=VisibilityBitmap.outputs)
     ours = method.frame(ctx)
     ref, se_ref = render_with_stderr(to_mitsuba_dict(scene, t_s, res, integrator={"type": "direct"}),
                                      spp=2048, passes=16, seed=7, variant="llvm")
@@ -332,7 +368,7 @@ def test16_a_scene_without_point_lights_sends_what_the_layout_says_and_matches_s
     scene = load("cornell")  # an area light only: seed 000 traces point lights, so L = 0
     tracer = make("embree", scene)
     method = VisibilityBitmap({"layout": layout, "codec": "lz4"})
-    method.prepare(scene, tracer)
+    method.restore(method.prepare(scene, tracer))
     alone, _ = run(method, scene, tracer, zero_latency=True, frames=1)
     images, contexts = run(method, scene, tracer, zero_latency=False, frames=1)
     assert contexts[0][2]["raw_bytes"] == RES[0] * RES[1] * bytes_per_pixel

@@ -1,0 +1,91 @@
+"""Alpha testing: hits on transparent texels of alpha-tested materials do not count.
+
+A material with an ``opacity_texture`` exists only where its bilinearly filtered opacity at the hit's UV is at
+least its ``alpha_threshold`` (0.5 by default, Quake III's ``alphaFunc GE128``). Neither backend can skip a
+hit inside its traversal here (embreex exposes no intersection filter, and a Mitsuba ``mask`` is stochastic), so
+the tracer resolves alpha after the backend query: a ray whose closest hit is transparent is traced again from
+just past that hit, until it finds an opaque hit, leaves its [tmin, tmax) interval, or has crossed
+``MAX_ALPHA_LAYERS`` transparent hits. Every re-traced ray is a real backend query and counts in
+``rays_intersect``.
+
+Mitsuba's own ``mask`` BSDF keeps a surface with probability = opacity; for binary opacity maps both models
+agree (up to the bilinear ramp one texel wide at the map's edges).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from suite.core.trace.robust import FLOAT_SCALE
+
+# A ray crossing more transparent hits than this keeps the last one as its hit (or counts as occluded): a
+# guard against pathological stacks of coplanar alpha-tested faces, far above any real scene's depth complexity.
+MAX_ALPHA_LAYERS = 64
+# Re-traced rays start this many float32 ULPs (of the hit's largest coordinate in the tracing frame, or of its
+# distance, whichever is larger) past the transparent hit. Surfaces closer than that behind it are skipped too.
+ALPHA_STEP_ULPS = 16.0
+
+
+class AlphaTest:
+    """Per-face opacity lookup for the alpha-tested materials of a scene."""
+
+    def __init__(self, scene):
+        from suite.core.gbuffer import lookup_texture
+
+        self._lookup = lookup_texture
+        self.faces = scene.faces
+        self.uvs = scene.uvs
+        self.face_material = scene.face_material
+        self.textures = {i: (m.opacity_texture, float(m.alpha_threshold))
+                         for i, m in enumerate(scene.materials) if m.is_alpha_tested}
+        tested = np.zeros(len(scene.materials), bool)
+        tested[list(self.textures)] = True
+        self.face_tested = tested[scene.face_material]
+
+    @classmethod
+    def for_scene(cls, scene):
+        """An AlphaTest, or None when no material is alpha-tested (then tracers do nothing extra)."""
+        return cls(scene) if any(m.is_alpha_tested for m in scene.materials) else None
+
+    def opacity(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(N,) float32 filtered opacity at the hits (1 for faces without an opacity map, 0 for misses)."""
+        prim = np.asarray(prim)
+        out = np.where(prim >= 0, 1.0, 0.0).astype(np.float32)
+        hit = prim >= 0
+        tested = np.zeros(len(prim), bool)
+        tested[hit] = self.face_tested[prim[hit]]
+        idx = np.nonzero(tested)[0]
+        if len(idx) == 0:
+            return out
+        p = prim[idx]
+        w = np.stack([1.0 - u[idx].astype(np.float64) - v[idx], u[idx], v[idx]], axis=-1)[..., None]
+        uv = (self.uvs[self.faces[p]].astype(np.float64) * w).sum(axis=1)
+        mat = self.face_material[p]
+        for mid, (tex, _) in self.textures.items():
+            sel = mat == mid
+            if sel.any():
+                out[idx[sel]] = self._lookup(tex, uv[sel])[:, 0]
+        return out
+
+    def transparent(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(N,) bool: the hit lies on a texel below its material's alpha threshold (misses are not transparent)."""
+        prim = np.asarray(prim)
+        hit = prim >= 0
+        tested = np.zeros(len(prim), bool)
+        tested[hit] = self.face_tested[prim[hit]]
+        out = np.zeros(len(prim), bool)
+        idx = np.nonzero(tested)[0]
+        if len(idx) == 0:
+            return out
+        opacity = self.opacity(prim[idx], u[idx], v[idx])
+        threshold = np.zeros(len(self.textures) and (max(self.textures) + 1), np.float32)
+        for mid, (_, thr) in self.textures.items():
+            threshold[mid] = thr
+        out[idx] = opacity < threshold[self.face_material[prim[idx]]]
+        return out
+
+
+def step_past(o_local: np.ndarray, d: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Distances just past hits at ``t`` along rays from float32 tracing-frame origins ``o_local`` (N, 3)."""
+    p = np.abs(o_local.astype(np.float64) + d.astype(np.float64) * t[:, None]).max(axis=1)
+    scale = np.maximum(p, np.abs(t)).astype(np.float32)
+    return t + np.maximum(ALPHA_STEP_ULPS * np.spacing(scale).astype(np.float64), FLOAT_SCALE)
