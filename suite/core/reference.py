@@ -329,17 +329,35 @@ def _integrator(kind: str, max_depth: int | None) -> dict:
     raise UserError(f"unknown reference integrator '{kind}' (choose from path, direct)")
 
 
+def alpha_aware_integrator(scene, integrator: dict) -> dict:
+    """The integrator a reference of ``scene`` is rendered with: ``integrator`` itself, except that for scenes with
+    alpha-tested materials ``path`` becomes ``volpath`` (same ``max_depth``) and ``direct`` becomes ``volpath`` with
+    ``max_depth`` 2. Mitsuba's ``path`` and ``direct`` trace shadow rays with ``ray_test``, which any surface blocks,
+    a ``mask`` included; ``volpath`` multiplies shadow rays by the null-BSDF transmittance of what they cross
+    (src/integrators/volpath.cpp, ``sample_emitter``) and does not count passing a mask as a bounce, which is the
+    suite's alpha test (for binary opacity maps)."""
+    integrator = dict(integrator)
+    if not getattr(scene, "has_alpha_tested", False):
+        return integrator
+    if integrator.get("type") == "path":
+        return {**integrator, "type": "volpath"}
+    if integrator.get("type") == "direct":
+        return {"type": "volpath", "max_depth": 2}
+    return integrator
+
+
 def _reference_inputs(scene, t_s, resolution, spp, integrator, passes):
     from suite.core.scene import load
 
     scene = load(scene)
+    integrator = alpha_aware_integrator(scene, integrator)
     resolution = _resolve_resolution(scene, resolution)
     spp = int(spp)
     if spp < 1:
         raise UserError(f"spp must be >= 1, got {spp}")
     passes = default_passes(spp, resolution) if passes is None else int(passes)
     description = _scene_description(scene, t_s, resolution, integrator)
-    return scene, resolution, spp, passes, description
+    return scene, resolution, spp, passes, description, integrator
 
 
 def scene_reference(scene, t_s: float = 0.0, resolution=None, spp: int = 256, integrator: dict | None = None,
@@ -353,8 +371,8 @@ def scene_reference(scene, t_s: float = 0.0, resolution=None, spp: int = 256, in
     from suite.core.scene.mitsuba_io import to_mitsuba_dict
 
     integrator = dict(integrator or _integrator("path", 8))
-    scene, resolution, spp, passes, description = _reference_inputs(scene, t_s, resolution, spp, integrator,
-                                                                     passes)
+    scene, resolution, spp, passes, description, integrator = _reference_inputs(scene, t_s, resolution, spp,
+                                                                                 integrator, passes)
     resolved = resolve_variant(variant)
 
     def build():
@@ -370,7 +388,7 @@ def reference_path_for(scene, t_s: float = 0.0, resolution=None, spp: int = 256,
     from suite.core.env import resolve_variant
 
     integrator = dict(integrator or _integrator("path", 8))
-    _, _, spp, passes, description = _reference_inputs(scene, t_s, resolution, spp, integrator, passes)
+    _, _, spp, passes, description, _ = _reference_inputs(scene, t_s, resolution, spp, integrator, passes)
     full = _canonical(_render_description(description, spp, passes, seed, resolve_variant(variant)))
     return _paths(reference_key(full))[0]
 

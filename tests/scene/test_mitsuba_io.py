@@ -52,9 +52,9 @@ def test03_point_lights_keep_position_and_intensity():
 
 
 @pytest.mark.parametrize("shape, expected", [
-    ({"type": "rectangle", "bsdf": {"type": "conductor"}}, "unsupported BSDF plugin"),
-    ({"type": "disk"}, "unsupported shape plugin 'Disk'"),
-    ({"type": "rectangle", "bsdf": {"type": "dielectric"}}, "unsupported BSDF plugin"),
+    ({"type": "rectangle", "bsdf": {"type": "thindielectric"}}, "unsupported BSDF plugin 'thindielectric'"),
+    ({"type": "disk"}, "unsupported shape plugin 'disk'"),
+    ({"type": "rectangle", "bsdf": {"type": "roughdielectric"}}, "unsupported BSDF plugin 'roughdielectric'"),
 ])
 def test04_unsupported_plugins_are_named_in_a_one_line_error(shape, expected):
     with pytest.raises(UserError, match=expected) as info:

@@ -234,10 +234,11 @@ class _DescriptionCheck:
                     self.fail(where, f"unsupported '{child.props.plugin_name()}' nested in the film")
             elif name not in _FILM_PARAMS:
                 self.fail(where, f"hdrfilm parameter '{name}' is not supported")
-        crop = [int(props[k]) for k in ("crop_offset_x", "crop_offset_y") if props.has_property(k)]
-        full = all(int(props[k]) == int(props[d]) for k, d in (("crop_width", "width"), ("crop_height", "height"))
-                   if props.has_property(k) and props.has_property(d))
-        if any(crop) or not full or (not props.has_property("width") and props.has_property("crop_width")):
+        keys = set(props.keys())
+        crop = [int(props[k]) for k in ("crop_offset_x", "crop_offset_y") if k in keys]
+        full = all(k not in keys or (d in keys and int(props[k]) == int(props[d]))
+                   for k, d in (("crop_width", "width"), ("crop_height", "height")))
+        if any(crop) or not full:
             self.fail(where, "a cropped film is not supported (crop_offset_*, crop_width, crop_height)")
 
     # -- materials
@@ -309,7 +310,8 @@ class _DescriptionCheck:
 # --- BSDFs from built Mitsuba objects --------------------------------------------------------------
 # Mitsuba class name -> plugin name, for messages about objects (the description check names plugins directly).
 _CLASS_TO_PLUGIN = {
-    "SmoothDiffuse": "diffuse", "TwoSidedBRDF": "twosided", "SmoothConductor": "conductor",
+    "SmoothDiffuse": "diffuse", "TwoSidedBRDF": "twosided", "TwoSided": "twosided", "Mask": "mask",
+    "SmoothConductor": "conductor",
     "RoughConductor": "roughconductor", "SmoothDielectric": "dielectric", "RoughPlastic": "roughplastic",
     "MaskBSDF": "mask", "ThinDielectric": "thindielectric", "RoughDielectric": "roughdielectric",
     "SmoothPlastic": "plastic", "BumpMap": "bumpmap", "NormalMap": "normalmap", "BlendBSDF": "blendbsdf",
@@ -411,14 +413,16 @@ class _BsdfReader:
 
     def read(self) -> Material:
         cls, prefix, opacity, twosided = self.top, "", None, False
-        if cls == "MaskBSDF":
+        if self.plugin(cls) == "mask":
             value, tex = self.texture("", "opacity", allow_bitmap=True) if self.sub("opacity") else (None, None)
             if tex is None:
                 self.fail("mask opacity must be a bitmap (a constant opacity is stochastic transparency, not modelled)")
             if tex.shape[2] != 1:
                 self.fail(f"mask opacity bitmap must have one channel, got {tex.shape[2]}")
             opacity, prefix, cls = tex, "nested_bsdf.", self.nested_class("nested_bsdf")
-        if cls == "TwoSidedBRDF":
+            if self.plugin(cls) == "mask":
+                self.fail("a mask inside a mask is not supported")
+        if self.plugin(cls) == "twosided":
             if self.sub(prefix + "brdf_1."):
                 self.fail("twosided BSDF with different front and back BSDFs is not supported")
             cls = self.nested_class("brdf[0]")
@@ -455,10 +459,10 @@ class _BsdfReader:
             spec = self.texture(prefix, "specular_reflectance", False)[0] if "specular_reflectance.value" in keys \
                 else np.ones(3, np.float32)
             if plugin == "conductor":
-                return Material(name, albedo=spec, kind="mirror", conductor_eta=eta, conductor_k=k,
+                return Material(name, albedo=np.zeros(3), kind="mirror", conductor_eta=eta, conductor_k=k,
                                 specular_reflectance=spec, twosided=twosided)
             alpha, _ = self.texture(prefix, "alpha", allow_bitmap=False)
-            return Material(name, albedo=spec, kind="rough_conductor", conductor_eta=eta, conductor_k=k,
+            return Material(name, albedo=np.zeros(3), kind="rough_conductor", conductor_eta=eta, conductor_k=k,
                             specular_reflectance=spec, roughness=float(alpha[0]),
                             distribution=self.option("distribution", "beckmann"), twosided=twosided)
         if plugin == "dielectric":
