@@ -300,7 +300,8 @@ body {{ font-family: sans-serif; margin: 2em; max-width: 1200px; }}
 table.t {{ border-collapse: collapse; font-size: 0.85em; }}
 table.t td, table.t th {{ padding: 2px 8px; border-bottom: 1px solid #ddd; text-align: right; }}
 figure {{ display: inline-block; margin: 0.5em; }} figure img {{ image-rendering: pixelated; width: 320px; }}
-p.setting {{ margin: 1em 0 0.3em; padding: 2px 6px; background: #eef3f8; display: inline-block; }}
+table.prose td {{ text-align: left; vertical-align: top; }}
+p.setting {{ margin: 1em 0 0.3em; padding: 2px 6px; background: #eef3f8; display: table; }}
 </style></head><body>
 {body}
 </body></html>

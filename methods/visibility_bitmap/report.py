@@ -101,10 +101,12 @@ OUR_CRITICAL = {
 }
 NETWORK_COLS = OUR_PASSES["network"][0]
 TRANSFER_COLS = ["stage_encode_ms", "net_bitmap_ms", "stage_receive_bitmap_ms"]
+# The benchmark codecs drawn beside the runs in the bytes-against-resolution plot (the table has them all).
+PLOT_CODECS = ("none", "lzo", "lz4", "bitplane+zstd", "h264")
 NET_ORDER = ["lan-home", "lan-home,ssr=off", "5g-edge", "wifi-40m", "wan-50m", "lte", "dsl-3m"]
 # What this section reads from each run's config.json (see run_configs).
-CONFIG_COLUMNS = ["run", "backend", "message_timeout_ms", "work_ns_per_ray", "work_ns_per_pixel", "reference_spp",
-                  "codec", "layout", "ambient", "gpu_to_cpu_mb_per_s", "cpu_to_gpu_mb_per_s", "net_profile",
+CONFIG_COLUMNS = ["run", "backend", "clients", "message_timeout_ms", "work_ns_per_ray", "work_ns_per_pixel",
+                  "reference_spp", "codec", "layout", "ambient", "gpu_to_cpu_mb_per_s", "cpu_to_gpu_mb_per_s", "net_profile",
                   "down_mbps", "down_delay_ms", "queue_packets", "min_rto_ms", "initial_window_segments",
                   "slow_start_restart"]
 NOT_RECORDED = "(not recorded)"  # a scene or backend an older stored document lacks
@@ -123,9 +125,12 @@ def run_configs(run_dirs) -> pd.DataFrame:
             continue
         cfg, params = stored.get("config", {}), stored.get("config", {}).get("params", {})
         network = stored.get("network") if isinstance(stored.get("network"), dict) else {}
+        # a topology (several clients' access links and the server's link): the access link is the profile run
+        network = network.get("access") or {} if "access" in network else network
         down, tcp = network.get("down") or {}, network.get("tcp") or {}
         queue_bytes, mtu_bytes = _number(down.get("queue_bytes")), _number(down.get("mtu_bytes"))
         rows.append({"run": d.name, "backend": cfg.get("backend"),
+                     "clients": _number(cfg.get("clients", 1)),
                      **{k: _number(cfg.get(k)) for k in ("message_timeout_ms", "work_ns_per_ray", "work_ns_per_pixel",
                                                          "reference_spp")},
                      **{k: params.get(k) for k in ("codec", "layout", "ambient")},
@@ -157,6 +162,7 @@ def prepare(results_df: pd.DataFrame, run_dirs) -> pd.DataFrame:
         if col not in frames:
             frames[col] = np.nan
     configs = run_configs(run_dirs)
+    frames["run"] = frames["run"].astype(str)
     frames = frames.merge(configs, on="run", how="left", suffixes=("", "_config"))
     for col in CONFIG_COLUMNS[1:]:
         if f"{col}_config" in frames:
@@ -243,9 +249,11 @@ _NO_BENCH = ("<p><em>No stored benchmark for this part. <code>splitbench bench v
 # ------------------------------------------------------------------------------------------------- Figure 10
 
 def paper_setting(frames: pd.DataFrame) -> pd.DataFrame:
-    """The paper's setting: its scene at its resolution over TCP on the home-LAN profile (any spec of it)."""
+    """The paper's setting: one client, its scene at its resolution over TCP on the home-LAN profile (any spec
+    of it)."""
     return frames[(frames["scene"] == PAPER_SCENE) & (frames["resolution"] == _res_text(PAPER_RESOLUTION))
-                  & (frames["protocol"] == "tcp") & frames["net"].str.startswith(PAPER_NET_PROFILE)]
+                  & (frames["protocol"] == "tcp") & frames["net"].str.startswith(PAPER_NET_PROFILE)
+                  & (_col(frames, "clients").fillna(1) <= 1)]
 
 
 def fig10_table(frames: pd.DataFrame) -> tuple[pd.DataFrame, list[str]]:
@@ -308,15 +316,16 @@ def _nets_note(sel: pd.DataFrame) -> str:
 
 def _startup_note(sel: pd.DataFrame) -> str:
     """Frame 0 and the work clock, from the runs' counters and config.json (queue, minimum RTO, work costs)."""
-    parts = []
-    for net in _net_order(sel["net"]):
-        first = sel[(sel["net"] == net) & (sel["frame"] == 0)]
+    parts, paper = [], sel[sel["variant"] == "paper"]
+    losses = []
+    for net in _net_order(paper["net"]):
+        first = paper[(paper["net"] == net) & (paper["frame"] == 0)]
         retx, queue = first["retransmissions"].mean(), _first(first, "queue_packets")
         if np.isfinite(retx) and retx > 0 and queue is not None:
-            parts.append(f"On <code>{esc(net)}</code> frame 0 is a cold connection: slow start overshoots the "
-                         f"{queue:,.0f}-packet queue (config.json) and recovers from the losses ({retx:,.0f} "
-                         "retransmissions).")
-    paper = sel[sel["variant"] == "paper"]
+            losses.append(f"{queue:,.0f}-packet queue, {retx:,.0f} retransmissions on <code>{esc(net)}</code>")
+    if losses:
+        parts.append("Frame 0 of the raw bitmap is a cold connection: slow start overshoots the queue and recovers "
+                     f"from the losses ({'; '.join(losses)}; queue from config.json).")
     ns_ray, ns_px, min_rto = (_first(paper, c) for c in ("work_ns_per_ray", "work_ns_per_pixel", "min_rto_ms"))
     if None not in (ns_ray, ns_px, min_rto):
         work_ms = (_col(paper, "rays") * ns_ray + _col(paper, "pixels") * ns_px).mean() / 1e6
@@ -554,7 +563,7 @@ def _claims_part(frames: pd.DataFrame, files: SectionFiles) -> str:
                "construction</b> = it follows from how the suite is built; <b>not measurable here</b> = the suite "
                "cannot measure it. Scene, backend and the rest of the setting are in each row."
                + files.csv(table, "claims.csv") + files.json([c.as_dict() for c in found], "claims.json") + "</p>"
-               + table_html(table))
+               + table_html(table, prose=True))
     return "".join(out)
 
 
@@ -687,7 +696,8 @@ def _plot_bytes_resolution(table: pd.DataFrame, bench_rows: pd.DataFrame, files:
     for variant, df in table.groupby("variant"):
         ax.plot(df["pixels"], df["wire bytes/frame"], marker="o", label=f"run: {variant}")
     if not bench_rows.empty:
-        for (layout, codec), rows in bench_rows.sort_values("pixels").groupby(["layout", "codec"]):
+        shown = bench_rows[bench_rows["codec"].isin(PLOT_CODECS)].sort_values("pixels")
+        for (layout, codec), rows in shown.groupby(["layout", "codec"]):
             ax.plot(rows["pixels"], rows["bytes_per_frame"], ls="--", marker=".", label=f"bench: {layout} {codec}")
     label_axes(ax, "pixels per frame", "bytes per frame on the wire", xscale="log", yscale="log")
     return files.plot(fig, name)
@@ -886,6 +896,9 @@ def _bench_part(bench, files: SectionFiles) -> str:
 def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None) -> str:
     """The HTML fragment of the section (see the module docstring)."""
     frames = prepare(results_df, run_dirs)
+    # The paper has one client; runs of several clients on one server (a harness extension) are left out.
+    several = frames[frames["clients"].fillna(1) > 1]
+    frames = frames[frames["clients"].fillna(1) <= 1]
     files = SectionFiles(out_dir, SUBDIR)
     bench = _load_bench(run_dirs, results_root)
     shown = (f" These runs: scenes {esc(', '.join(sorted(frames['scene'].unique())))}; backends "
@@ -897,7 +910,8 @@ def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None)
            "configured memory bandwidth, <b>bench</b> = the stored <code>splitbench bench visibility_bitmap</code> "
            "document, <b>paper</b> = transcribed from seed 000. Means exclude frame 0 where marked: it opens the "
            "TCP connection (slow start). Every table is for one scene and one backend, named above it." + shown
-           + "</p>",
+           + (f" Runs with several clients on one server ({several['run'].nunique()}) are left out: the paper has "
+              "one client." if not several.empty else "") + "</p>",
            _fig10_part(frames, files),
            _claims_part(frames, files),
            _bytes_part(frames, bench, files),

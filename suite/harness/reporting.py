@@ -29,16 +29,21 @@ def slug(*parts) -> str:
     return "_".join(re.sub(r"[^A-Za-z0-9.-]+", "_", str(p)).strip("_") or "x" for p in parts)
 
 
-def table_html(df: pd.DataFrame, index: bool = False) -> str:
-    """An HTML table (class ``t``): count columns (:data:`COUNT_WORDS`) as whole numbers with separators, other
-    floats to 4 significant digits, missing values as "–"; cell text is escaped."""
+def _float_text(v: float) -> str:
+    return f"{v:,.0f}" if abs(v) >= 1000 else f"{v:.4g}"
+
+
+def table_html(df: pd.DataFrame, index: bool = False, prose: bool = False) -> str:
+    """An HTML table (class ``t``): count columns (:data:`COUNT_WORDS`) and floats from 1000 up as whole numbers
+    with separators, other floats to 4 significant digits, missing values as "–"; cell text is escaped.
+    ``prose``: cells hold sentences (class ``t prose``: the page aligns them left, at the top)."""
     df = df.copy()
     for col in df.columns:
         if any(word in str(col) for word in COUNT_WORDS) and pd.api.types.is_numeric_dtype(df[col]) \
                 and not pd.api.types.is_bool_dtype(df[col]):
             df[col] = df[col].map(lambda v: "–" if pd.isna(v) else f"{v:,.0f}")
-    return df.to_html(index=index, float_format=lambda v: f"{v:.4g}", na_rep="–", border=0, classes="t",
-                      escape=True)
+    return df.to_html(index=index, float_format=_float_text, na_rep="–", border=0,
+                      classes="t prose" if prose else "t", escape=True)
 
 
 def figure(width_in: float = 8.0, height_in: float = 4.0):

@@ -1,9 +1,14 @@
 """The report reads stored results only and writes index.html, plots and tables."""
+import shutil
+from pathlib import Path
+
 import pandas as pd
 import pytest
 
 from reports import build as report
 from suite.harness import executor
+
+FAKE_METHODS = Path(__file__).parent / "fake_methods"
 
 
 def test01_report_has_every_section_and_table(fake_config, tmp_path):
@@ -20,6 +25,9 @@ def test01_report_has_every_section_and_table(fake_config, tmp_path):
         assert (tmp_path / "rep" / name).stat().st_size > 0, name
     runs = pd.read_csv(tmp_path / "rep" / "runs.csv")
     assert sorted(runs["method"]) == ["synthetic_async", "synthetic_sync"]
+    # the frames a method section gets carry the backend of their run; every file was written atomically
+    assert set(pd.read_csv(tmp_path / "rep" / "frames.csv")["backend"]) == {"fake"}
+    assert not [p.name for p in (tmp_path / "rep").rglob(".*")]
 
 
 def test02_report_never_runs_anything_and_ignores_incomplete_runs(fake_config, fake_core, tmp_path, monkeypatch):
@@ -44,15 +52,16 @@ def test03_method_sections_and_extra_tables_are_included(fake_config, tmp_path, 
     assert "<h2>Method: synthetic_sync</h2><p>3 frames seen</p>" in page
 
 
-def test04_method_report_py_is_discovered(fake_config, tmp_path, monkeypatch):
-    import shutil
-    from pathlib import Path
+def _method_with_report(root, source: str):
+    """A copy of the synthetic_sync method under ``root`` whose report.py is ``source``; returns ``root``."""
+    shutil.copytree(FAKE_METHODS / "synthetic_sync", root / "synthetic_sync")
+    (root / "synthetic_sync" / "report.py").write_text(source)
+    return root
 
-    fake_methods = Path(__file__).parent / "fake_methods"
-    root = tmp_path / "methods"
-    shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
-    (root / "synthetic_sync" / "report.py").write_text(
-        "def section(results_df, run_dirs):\n    return f'<p>{len(run_dirs)} runs here</p>'\n")
+
+def test04_method_report_py_is_discovered(fake_config, tmp_path, monkeypatch):
+    root = _method_with_report(tmp_path / "methods",
+                               "def section(results_df, run_dirs):\n    return f'<p>{len(run_dirs)} runs here</p>'\n")
     monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
     executor.sweep([fake_config()], tmp_path / "res")
     page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
@@ -60,16 +69,10 @@ def test04_method_report_py_is_discovered(fake_config, tmp_path, monkeypatch):
 
 
 def test06_a_method_section_that_takes_out_dir_and_results_root_gets_them(fake_config, tmp_path, monkeypatch):
-    import shutil
-    from pathlib import Path
-
-    fake_methods = Path(__file__).parent / "fake_methods"
-    root = tmp_path / "methods"
-    shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
-    (root / "synthetic_sync" / "report.py").write_text(
-        "def section(results_df, run_dirs, out_dir=None, results_root=None):\n"
-        "    (out_dir / 'extra.csv').write_text('x\\n1\\n')\n"
-        "    return f'<p>root {results_root.name}</p>'\n")
+    root = _method_with_report(tmp_path / "methods",
+                               "def section(results_df, run_dirs, out_dir=None, results_root=None):\n"
+                               "    (out_dir / 'extra.csv').write_text('x\\n1\\n')\n"
+                               "    return f'<p>root {results_root.name}</p>'\n")
     monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
     executor.sweep([fake_config()], tmp_path / "res")
     page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
@@ -100,17 +103,11 @@ def test_netsim_validation_is_summarised_per_transport(tmp_path):
 
 
 def test07_one_loader_imports_a_methods_files_and_never_serves_another_folders_copy(tmp_path, monkeypatch):
-    import shutil
-    from pathlib import Path
-
     from suite.errors import UserError
     from suite.harness import registry
 
-    fake_methods = Path(__file__).parent / "fake_methods"
     for k in (1, 2):  # the same method name in two roots, with different report.py files
-        root = tmp_path / f"methods{k}"
-        shutil.copytree(fake_methods / "synthetic_sync", root / "synthetic_sync")
-        (root / "synthetic_sync" / "report.py").write_text(f"def section(results_df, run_dirs):\n    return '{k}'\n")
+        _method_with_report(tmp_path / f"methods{k}", f"def section(results_df, run_dirs):\n    return '{k}'\n")
     for k in (1, 2, 1):
         monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(tmp_path / f"methods{k}"))
         assert registry.load_module("synthetic_sync", "report").section(None, []) == str(k)

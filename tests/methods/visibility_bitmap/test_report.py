@@ -26,29 +26,30 @@ NETWORKS = {  # what config.json's "network" holds (netsim's describe()), reduce
 }
 
 
-def _config(variant, net, protocol, backend, codec, layout, timeout_ms):
+def _config(variant, net, protocol, backend, codec, layout, timeout_ms, clients=1):
     n = NETWORKS[net]
-    return {"config": {"backend": backend, "net": net, "protocol": protocol, "variant": variant,
+    return {"config": {"backend": backend, "net": net, "protocol": protocol, "variant": variant, "clients": clients,
                        "message_timeout_ms": timeout_ms, "work_ns_per_ray": 50.0, "work_ns_per_pixel": 20.0,
                        "reference_spp": 128,
                        "params": {"codec": codec, "layout": layout, "ambient": variant == "paper_ambient",
                                   "gpu_to_cpu_mb_per_s": 626.5, "cpu_to_gpu_mb_per_s": 2003.5}},
             "backend": {"name": backend},
-            "network": {"name": n["name"],
-                        "down": {"bandwidth_mbps": n["mbps"], "delay_ms": n["delay_ms"], "mtu_bytes": 1500,
-                                 "queue_bytes": n["queue_bytes"]},
-                        "tcp": {"min_rto_ms": 200.0, "initial_window_segments": 10, "slow_start_restart": n["ssr"]}}}
+            "network": {"clients": clients, "server": None, "access": {
+                "name": n["name"],
+                "down": {"bandwidth_mbps": n["mbps"], "delay_ms": n["delay_ms"], "mtu_bytes": 1500,
+                         "queue_bytes": n["queue_bytes"]},
+                "tcp": {"min_rto_ms": 200.0, "initial_window_segments": 10, "slow_start_restart": n["ssr"]}}}}
 
 
 def _run(root, variant, resolution, net, protocol, net_ms, encode_ms, receive_ms, wire_bytes, raw_bytes,
          codec="none", layout="paper32", frames=3, zl_dssim=0.0, dssim=np.nan, scene="living_room",
-         backend="embree", timeout_ms=100.0, retransmissions=0):
+         backend="embree", timeout_ms=100.0, retransmissions=0, clients=1):
     """One stored run: a config.json on disk and its frames as the report builder passes them."""
-    name = f"visibility_bitmap-{variant}-{scene}-{resolution}-{net}-{protocol}-{backend}"
+    name = f"visibility_bitmap-{variant}-{scene}-{resolution}-{net}-{protocol}-{backend}-{clients}"
     run_dir = root / "results" / name
     run_dir.mkdir(parents=True)
     (run_dir / "config.json").write_text(json.dumps(_config(variant, net, protocol, backend, codec, layout,
-                                                            timeout_ms)))
+                                                            timeout_ms, clients)))
     rows = []
     for i in range(frames):
         net_bitmap = net_ms[i] if isinstance(net_ms, list) else net_ms
@@ -218,8 +219,27 @@ def test07_prose_numbers_come_from_the_stored_configs(tmp_path):
     # 921,652 B in 50 ms = 147 Mbit/s
     assert "its 921,652 B need more than 50 ms below 147 Mbit/s" in page
     # queue: 1,500,000 B / 1500 B; work clock: 1000 rays · 50 ns + 1000 pixels · 20 ns = 0.07 ms < 200 ms RTO
-    assert "the 1,000-packet queue (config.json)" in page and "(40 retransmissions)" in page
+    assert "1,000-packet queue, 40 retransmissions on <code>lan-home</code>; queue from config.json" in page
     assert "shorter than the 200 ms minimum retransmission timeout" in page
+
+
+def test07b_runs_of_several_clients_are_left_out_of_the_papers_single_client_setting(tmp_path):
+    dirs, frames = _results(tmp_path, PAPER_RUNS[1:2] + [
+        (("paper", "1920x1080", "lan-home,ssr=off", "tcp", 900.0, 8.0, 15.0, HD + 52, HD), {"clients": 4})])
+    prepared = report.prepare(frames, dirs)
+    table, _ = report.fig10_table(prepared)
+    assert table.iloc[3]["ours ms [lan-home,ssr=off]"] == pytest.approx(90.5)
+    assert _claims(frames, dirs)[("000.network_ms", "lan-home,ssr=off")].suite_value == pytest.approx(90.5)
+    assert "Runs with several clients on one server (1) are left out" in report.section(frames, dirs)
+
+
+def test07c_config_json_of_a_single_link_network_reads_the_same(tmp_path):
+    dirs, _ = _results(tmp_path, PAPER_RUNS[:1])
+    config = json.loads((dirs[0] / "config.json").read_text())
+    config["network"] = config["network"]["access"]  # the description before topologies
+    (dirs[0] / "config.json").write_text(json.dumps(config))
+    row = report.run_configs(dirs).iloc[0]
+    assert row["queue_packets"] == 1000 and row["min_rto_ms"] == 200 and bool(row["slow_start_restart"])
 
 
 def test08_codec_network_and_quality_tables_come_from_the_runs(results):
