@@ -4,6 +4,8 @@
 #   - libLLVM >= 16 for Dr.Jit's LLVM backend (Debian's default libLLVM-15 aborts in
 #     rendering kernels with "LLVM ERROR: Cannot select: ... fmaximum").
 #   - liblzo2-dev, so that python-lzo (seed 000's LZO codec) can be built. Optional.
+#   - Debian's OpenArena data (maps, textures, shader scripts; GPL-2+) for the oa:<map> scenes
+#     (docs/scenes.md). Optional: without it those scenes are listed as unavailable and their tests skip.
 # As root on Debian/Ubuntu it installs them with apt-get. Without root it tells you what to do
 # (see README "Without root") and stops if no usable libLLVM exists.
 set -euo pipefail
@@ -32,6 +34,18 @@ if [ ! -e /usr/include/lzo/lzo1x.h ] && [ "$(id -u)" = "0" ] && command -v apt-g
     || echo "setup: liblzo2-dev not installable; the LZO codec will be reported as unavailable"
 fi
 [ -e /usr/include/lzo/lzo1x.h ] && LZO=",lzo"
+
+OA_DIR=/usr/share/games/openarena/baseoa
+OA_PACKAGES="openarena-081-maps openarena-088-data openarena-data openarena-081-textures"
+have_oa() {
+  for pk3 in pak0.pk3 pak1-maps.pk3 pak4-textures.pk3 pak6-patch088.pk3; do [ -e "$OA_DIR/$pk3" ] || return 1; done
+}
+if ! have_oa && [ -z "${SPLITBENCH_OA_PATH:-}" ] && [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null; then
+  echo "setup: installing the OpenArena maps and textures for the oa: scenes (apt-get, about 300 MB)"
+  (apt-get update -qq >/dev/null \
+    && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $OA_PACKAGES >/dev/null) \
+    || echo "setup: OpenArena packages not installable; oa: scenes will be listed as unavailable (docs/scenes.md)"
+fi
 
 if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"

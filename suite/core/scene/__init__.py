@@ -1,7 +1,8 @@
 """Scenes: the shared model, embedded defaults and Mitsuba scenes.
 
 ``load(spec)`` accepts an embedded scene name (see :func:`list_scenes`), a path to a Mitsuba 3 XML file,
-or a Mitsuba scene dict.
+a Mitsuba scene dict, or a Quake III / OpenArena map: ``oa:<map>``, ``oa:<map>@<pak>``, a ``.bsp`` path or a
+``.pk3[:<map>]`` path (:mod:`suite.core.scene.q3`, docs/scenes.md).
 """
 from __future__ import annotations
 
@@ -18,14 +19,19 @@ _cache: dict[str, Scene] = {}
 
 
 def list_scenes() -> dict[str, str]:
-    """Embedded scene names with a one-line description."""
+    """Embedded scene names and the OpenArena scenes with scripted camera paths, with a one-line description.
+    An OpenArena scene whose data is missing is listed with a description starting ``unavailable:`` that names
+    the fix."""
     from suite.core.scene.embedded import EMBEDDED
+    from suite.core.scene.q3 import list_q3_scenes
 
     def first_line(fn):
         doc = (fn.__doc__ or "").strip().splitlines()
         return doc[0] if doc else ""
 
-    return {name: first_line(EMBEDDED[name]) for name in sorted(EMBEDDED)}
+    scenes = {name: first_line(EMBEDDED[name]) for name in sorted(EMBEDDED)}
+    scenes.update(list_q3_scenes())
+    return scenes
 
 
 def load(spec) -> Scene:
@@ -43,8 +49,13 @@ def load(spec) -> Scene:
         if spec not in _cache:
             _cache[spec] = EMBEDDED[spec]()
         return _cache[spec]
+    from suite.core.scene.q3 import is_q3_spec, load_q3
+
+    if is_q3_spec(spec):
+        return load_q3(spec)
     if spec.endswith(".xml") or os.sep in spec:
         from suite.core.scene.mitsuba_io import load_mitsuba
 
         return load_mitsuba(spec)
-    raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml)")
+    raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml; "
+                    f"or oa:<map> for an OpenArena map)")

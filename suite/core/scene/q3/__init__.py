@@ -37,9 +37,10 @@ def list_q3_scenes() -> dict[str, str]:
         problem = "unavailable: " + missing_data_message()
     out = {}
     for name, script in sorted(scripts.items()):
-        spec = PREFIX + name + (f"@{script['pak']}" if script.get("pak") else "")
-        if name in maps:
-            out[spec] = str(script.get("title", f"OpenArena map {name}"))
-        else:
-            out[spec] = problem
+        entries = [(PREFIX + name, script.get("title", f"OpenArena map {name}"), None)]
+        entries += [(f"{PREFIX}{name}@{pak}", title, pak) for pak, title in script.get("variants", {}).items()]
+        for spec, title, pak in entries:
+            have = name in maps and (pak is None or any(p.lower().removesuffix(".pk3") == pak.lower()
+                                                        for p in maps[name]))
+            out[spec] = str(title) if have else problem
     return out

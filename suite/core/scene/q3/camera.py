@@ -1,18 +1,22 @@
 """Camera paths through Quake III maps.
 
 Scripted paths live in ``camera_paths.toml`` (next to this file), one table per map name. A path starts at one of
-the map's ``info_player_deathmatch`` spawn points (``spawn``: index in entity order), looking along the spawn's
-``angle`` plus ``yaw_deg``, at Quake III's eye height: the floor below the spawn point + 24 units (the player
-box reaches 24 units below its origin) + 26 units (``DEFAULT_VIEWHEIGHT``) = 50 units = 1.27 m. ``moves`` then
-script the walk with :class:`~suite.core.scene.builder.CameraScript`'s vocabulary, lengths in metres:
+the map's spawn points -- ``spawn_origin`` (its ``origin`` in Quake units, which stays valid when a later release
+renumbers the spawn points) or ``spawn`` (index in entity order) -- looking along the spawn's ``angle`` plus
+``yaw_deg`` (and ``pitch_deg``), at Quake III's eye height: the floor below the spawn point + 24 units (the
+player box reaches 24 units below its origin) + 26 units (``DEFAULT_VIEWHEIGHT``) = 50 units = 1.27 m.
+``moves`` then script the walk with :class:`~suite.core.scene.builder.CameraScript`'s vocabulary, lengths in
+metres:
 
 * ``{ walk = METRES, s = SECONDS, strafe = METRES, rise = METRES }`` (negative ``walk``: backward);
 * ``{ turn = DEGREES, s = SECONDS, pitch = DEGREES, walk = METRES }`` (positive: to the left);
 * ``{ hold = SECONDS }``.
 
-A map without a script gets an automatic path of the same shape as the embedded scenes' (walk, 90 deg turn in
-0.3 s, walk, backward move, slow pan) from its first spawn point, with every walk shortened to stay
-``CLEARANCE_M`` short of the nearest wall along it.
+Spawn points are the map's ``info_player_deathmatch`` entities, or in a map without one its
+``info_player_start`` or CTF team spawn points (``convert.SPAWN_CLASSES``). A map without a script gets an
+automatic path of the same shape as the embedded scenes' (walk, 90 deg turn in 0.3 s, walk, backward move,
+slow pan) from its first spawn point, with every walk shortened to stay ``CLEARANCE_M`` short of the nearest
+wall along it.
 
 :func:`check_path` samples a camera path at its frame rate and reports frames whose point is in solid space
 (cluster -1) and frame-to-frame segments that cross geometry.
@@ -81,12 +85,21 @@ def spawn_eye(tris: np.ndarray, spawn_xyz: np.ndarray, unit_m: float) -> np.ndar
     return eye
 
 
-def scripted_path(name: str, script: dict, spawns: np.ndarray, tris: np.ndarray, unit_m: float) -> tuple[CameraPath, str]:
+def scripted_path(name: str, script: dict, spawns: np.ndarray, tris: np.ndarray,
+                  unit_m: float) -> tuple[CameraPath, str]:
     if len(spawns) == 0:
-        raise UserError(f"map '{name}' has no info_player_deathmatch to start its camera path from")
-    k = int(script.get("spawn", 0))
-    if not 0 <= k < len(spawns):
-        raise UserError(f"camera path of '{name}': spawn {k} is out of range (the map has {len(spawns)})")
+        raise UserError(f"map '{name}' has no spawn point to start its camera path from")
+    if "spawn_origin" in script:
+        want = np.array([float(x) for x in script["spawn_origin"]], np.float64)
+        want_scene = np.array([want[0], want[2], -want[1]]) * unit_m
+        dist = np.linalg.norm(spawns[:, :3] - want_scene, axis=1)
+        k = int(np.argmin(dist))
+        if dist[k] > unit_m:
+            raise UserError(f"camera path of '{name}': no spawn point at {want.tolist()} in this map")
+    else:
+        k = int(script.get("spawn", 0))
+        if not 0 <= k < len(spawns):
+            raise UserError(f"camera path of '{name}': spawn {k} is out of range (the map has {len(spawns)})")
     eye = spawn_eye(tris, spawns[k, :3], unit_m)
     yaw = spawns[k, 3] - 90.0 + float(script.get("yaw_deg", 0.0))  # Quake angle 0 = +x; CameraScript yaw 0 = -z
     cam = CameraScript(eye, yaw_deg=yaw, pitch_deg=float(script.get("pitch_deg", 0.0)))
@@ -120,7 +133,8 @@ def _free(tris, eye, direction, unit_m) -> float:
 def automatic_path(spawns: np.ndarray, tris: np.ndarray, unit_m: float) -> tuple[CameraPath, str]:
     """Walk, fast turn, walk, backward move, slow pan from the first spawn point, clipped by walls."""
     if len(spawns) == 0:
-        raise UserError("the map has no info_player_deathmatch to start a camera path from")
+        raise UserError("the map has no spawn point (info_player_deathmatch, info_player_start, team_CTF_*) to "
+                        "start a camera path from")
     eye = spawn_eye(tris, spawns[0, :3], unit_m)
     cam = CameraScript(eye, yaw_deg=spawns[0, 3] - 90.0)
 

@@ -13,12 +13,14 @@ Surfaces by shader (:mod:`.shaders`, plus the compiled surface flags and content
 ======================  ========================================================  ======================
 what                    rule                                                      result
 ======================  ========================================================  ======================
-sky                     ``surfaceparm sky`` / SURF_SKY or ``skyparms``            excluded, counted
+sky                     ``surfaceparm sky`` / SURF_SKY or ``skyparms``            excluded, counted; its
+                                                                                  light: sun / sky-dome
+                                                                                  point lights (lights.py)
 nodraw                  ``surfaceparm nodraw`` / SURF_NODRAW                      excluded, counted
-fog volume              ``surfaceparm fog`` / CONTENTS_FOG / ``fogparms``          excluded, counted
+fog volume              ``surfaceparm fog`` / CONTENTS_FOG and no stage to draw    excluded, counted
 sprite                  ``deformVertexes autosprite(2)`` (faces the viewer)        excluded, counted
 decal                   ``polygonOffset`` (lies on another surface)                excluded, counted
-additive effect         first stage blends ``add`` (GL_ONE GL_ONE, ...)            excluded, counted
+additive effect         first stage's destination factor GL_ONE (``add``, ...)     excluded, counted
 mirror / portal         ``portal`` / ``sort portal`` / ``surfaceparm portal``      kept, kind ``mirror``
 translucent             first stage ``blend`` / ``filter`` (or another non-        kept, kind ``glass``
                         additive blend with ``surfaceparm trans``)                (IOR 1.333 if liquid)
@@ -43,7 +45,8 @@ from suite.errors import UserError
 from suite.core.scene.model import Material, PointLight
 from suite.core.scene.q3.bsp import (MST_FLARE, MST_PATCH, MST_PLANAR, MST_TRIANGLE_SOUP, BspFile, gather_ranges,
                                      parse_bsp)
-from suite.core.scene.q3.lights import convert_light_entities, display_color_to_linear, surface_radiance
+from suite.core.scene.q3.lights import (SUN_DISTANCE_M, convert_light_entities, display_color_to_linear,
+                                        sky_dome_lights, sun_light, surface_radiance)
 from suite.core.scene.q3.patches import DEFAULT_LEVEL, tessellate_patch
 from suite.core.scene.q3.shaders import ShaderInfo, ShaderLibrary
 from suite.core.scene.q3.textures import TextureLoader, decode_srgb8
@@ -53,6 +56,8 @@ UNIT_M = 0.0254  # one Quake unit is an inch
 MISSING_TEXTURE_ALBEDO = (0.5, 0.5, 0.5)  # linear RGB of a surface whose texture is not found
 MAX_TEXTURE_SIZE = 256
 MIN_TRIANGLE_AREA_M2 = 1e-10
+SPAWN_CLASSES = ("info_player_deathmatch", "info_player_start", "team_CTF_redspawn", "team_CTF_bluespawn",
+                 "team_CTF_redplayer", "team_CTF_blueplayer")
 
 # Compiled flags in the BSP shader lump (Quake III surfaceflags.h).
 SURF_SKY, SURF_NODRAW, SURF_NOLIGHTMAP, SURF_NONSOLID = 0x4, 0x80, 0x400, 0x4000
@@ -115,7 +120,8 @@ class Q3Info:
     triangle_face: np.ndarray  # (T,) BSP face of each scene triangle
     alpha_masks: dict = field(default_factory=dict)  # material index -> (H, W) uint8 opacity (8-bit form of its
     #                                                  Material.opacity_texture)
-    spawn_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (S, 4): x, y, z (scene), yaw deg
+    spawn_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (S, 4): x, y, z (scene), Quake
+    #                                                                    angle (deg) of counts["spawn_class"]
 
     ARRAYS = ("face_type", "face_shader", "face_model", "face_flags", "triangle_face", "spawn_points")
 
@@ -429,9 +435,9 @@ def build(bsp_bytes: bytes, map_name: str, source: str, shaders: ShaderLibrary, 
     counts["surface_light_triangles"] = int(emissive.sum())
     counts["surface_light_shaders"] = sorted({materials[i].name for i in np.unique(face_material[emissive])})
     sl_shader = np.array([shader_infos[s].surfacelight > 0 for s in range(len(names))], bool)
-    counts["surface_light_faces_excluded"] = {name: int((sl_shader[faces["shader"]] & (reason == name)).sum())
-                                              for name, _ in rules if (sl_shader[faces["shader"]] & (reason == name)).any()}
-    counts["sun_shaders_skipped"] = sorted({names[s] for s in range(len(names)) if shader_infos[s].sun})
+    sl_face = sl_shader[faces["shader"]]
+    counts["surface_light_faces_excluded"] = {name: int((sl_face & (reason == name)).sum())
+                                              for name, _ in rules if (sl_face & (reason == name)).any()}
     kind_names = ("diffuse", "mirror", "glass")
     kind_of = np.array([kind_names.index(m.kind) for m in materials])
     kc = np.bincount(kind_of[face_material], minlength=len(kind_names))
@@ -446,9 +452,39 @@ def build(bsp_bytes: bytes, map_name: str, source: str, shaders: ShaderLibrary, 
         return np.asarray(q, np.float64) @ Q3_TO_SCENE.T * options.unit_m
 
     point_lights = [PointLight(f"{lt.kind}_{lt.index}", to_scene(lt.origin_q3), lt.rgb_w_sr) for lt in q3lights]
+    light_records = [lt.record(to_scene) for lt in q3lights]
+    # Suns of the sky shaders the map's drawn-or-not faces use (q3map2 creates them from any surface's shader).
+    centre = 0.5 * (pos.min(axis=0) + pos.max(axis=0))
+    no_shader_sun = bool(b.entities) and b.entities[0].get("_noshadersun", "")[:1] == "1"
+    sun_shaders = [] if no_shader_sun else [s for s in np.unique(faces["shader"]) if shader_infos[s].suns]
+    for s in sun_shaders:
+        for k, (color, intensity, degrees, elevation) in enumerate(shader_infos[s].suns):
+            if intensity <= 0:
+                continue
+            position, direction, rgb = sun_light(color, intensity, degrees, elevation, centre, options.light_scale)
+            point_lights.append(PointLight(f"sun_{names[s]}_{k}", position, rgb))
+            light_records.append({"entity": -1, "kind": "sun", "shader": names[s], "position": position.tolist(),
+                                  "direction": direction.tolist(), "sun_intensity": intensity,
+                                  "irradiance_w_m2": float(rgb.max() / SUN_DISTANCE_M ** 2),
+                                  "color": display_color_to_linear(color).tolist(),
+                                  "intensity_w_sr": float(rgb.max())})
+    # Sky light: a dome of distant point lights per sky shader with a surface light.
+    sky_shaders = [s for s in np.unique(faces["shader"]) if shader_flags[s] & FLAGS["sky"]
+                   and shader_infos[s].surfacelight > 0]
+    for s in sky_shaders:
+        color, _ = _light_color(shader_infos[s], textures)
+        radiance = surface_radiance(shader_infos[s].surfacelight, options.light_scale) * color
+        positions, directions, rgbs = sky_dome_lights(radiance, centre)
+        for k, (position, direction, rgb) in enumerate(zip(positions, directions, rgbs)):
+            point_lights.append(PointLight(f"sky_{names[s]}_{k}", position, rgb))
+            light_records.append({"entity": -1, "kind": "sky", "shader": names[s], "position": position.tolist(),
+                                  "direction": direction.tolist(), "sky_radiance": radiance.tolist(),
+                                  "intensity_w_sr": float(rgb.max())})
     counts["light_entities"] = int(sum(1 for e in b.entities if e.get("classname", "")[:5].lower() == "light"))
+    counts["sun_lights"] = int(sum(1 for r in light_records if r["kind"] == "sun"))
     counts["point_lights"] = len(point_lights)
-    counts["lights_by_kind"] = {k: sum(1 for lt in q3lights if lt.kind == k) for k in ("point", "spot", "linear")}
+    counts["lights_by_kind"] = {k: sum(1 for r in light_records if r["kind"] == k)
+                                for k in ("point", "spot", "linear", "sun", "sky")}
     counts["lights_skipped"] = light_skipped
 
     # --- visibility ---------------------------------------------------------------------------------
@@ -471,9 +507,11 @@ def build(bsp_bytes: bytes, map_name: str, source: str, shaders: ShaderLibrary, 
     timings["visibility_s"] = time.perf_counter() - t3
 
     # --- spawn points -------------------------------------------------------------------------------
+    # info_player_deathmatch; a map without one (some CTF maps) uses the first class of SPAWN_CLASSES it has.
     spawns = []
+    spawn_class = next((k for k in SPAWN_CLASSES if any(e.get("classname") == k for e in b.entities)), None)
     for e in b.entities:
-        if e.get("classname") == "info_player_deathmatch":
+        if e.get("classname") == spawn_class:
             q = _vec(e.get("origin"))
             try:
                 angle = float(e.get("angle", "0") or 0)
@@ -482,11 +520,12 @@ def build(bsp_bytes: bytes, map_name: str, source: str, shaders: ShaderLibrary, 
             spawns.append([*to_scene(q), angle])
     spawn_points = np.array(spawns, np.float64).reshape(-1, 4)
     counts["spawn_points"] = len(spawns)
+    counts["spawn_class"] = spawn_class
 
     message = b.entities[0].get("message", "") if b.entities else ""
     info = Q3Info(map_name=map_name, source=source, bsp_sha256=hashlib.sha256(bsp_bytes).hexdigest(),
                   message=" ".join(message.split()), options=dict(vars(options)),
-                  shaders=[vars(r) for r in records], lights=[lt.record(to_scene) for lt in q3lights], counts=counts,
+                  shaders=[vars(r) for r in records], lights=light_records, counts=counts,
                   face_type=ftype.astype(np.int32), face_shader=faces["shader"].astype(np.int32),
                   face_model=face_model.astype(np.int32), face_flags=fflags.astype(np.int64),
                   triangle_face=tri_face.astype(np.int32), alpha_masks=alpha_masks, spawn_points=spawn_points)

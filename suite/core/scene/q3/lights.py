@@ -28,8 +28,23 @@ A Lambertian surface of albedo rho under irradiance E has radiance rho * E / pi,
 All of them are multiplied by ``light_scale`` (default 1). Colours (``_color``, ``q3map_lightRGB``, the average
 of the light image) are normalised so that the largest component is 1 (q3map2's ColorNormalize) and, being
 chosen on screen, read as sRGB-encoded and decoded to linear RGB (a normalised colour keeps its maximum of 1).
-Not reproduced: the 16-unit distance clamp, q3map2's surface-light back-splash point lights, sun and sky
-lights (``q3map_sun``, ``_sun``), negative and ``lightJunior`` lights; they are counted.
+* sun (``q3map_sun r g b intensity degrees elevation`` in a sky shader the map uses): q3map2 adds
+  ``intensity * cos`` to a luxel it lights (``CreateSunLight``, ``skyScale`` = 1), an irradiance of
+  ``intensity * pi / 63.75`` W/m^2 at normal incidence. The scene model has no directional light, so a sun
+  becomes a point light ``SUN_DISTANCE_M`` (10 km) from the centre of the map towards the sun, with
+  ``I = E * SUN_DISTANCE_M^2``; over a 100 m map its direction varies by 0.3 deg and its irradiance by 1 %.
+  It reaches the level through the holes the (excluded) sky faces leave.
+
+* sky light (``q3map_surfacelight V`` on a sky shader): q3map2 makes the sky faces area lights of the
+  surface-light radiance ``L`` above. Sky faces are not geometry here, so the sky becomes a dome of
+  ``SKY_DOME_BANDS x SKY_DOME_AZIMUTHS`` (3 x 8) point lights ``SUN_DISTANCE_M`` away, one per equal solid
+  angle cell ``dOmega = 2 pi / 24`` of the upper hemisphere (cell centres at the middle of their cos(theta)
+  band), each of irradiance ``L * dOmega`` at normal incidence. Under open sky a horizontal surface then
+  receives ``sum(L dOmega cos theta) = pi L``, what a uniform sky of radiance L gives; under partial sky the
+  shadow rays leave through the holes the sky faces leave, like light through the sky faces.
+
+Not reproduced: the 16-unit distance clamp, q3map2's surface-light back-splash point lights, ``_sun`` spot
+suns, negative and ``lightJunior`` lights; they are counted.
 """
 from __future__ import annotations
 
@@ -50,6 +65,9 @@ LIGHTMAP_UNITY = 255.0 / 4.0  # luxel value that leaves the texture unchanged (m
 IRRADIANCE_PER_LUXEL = math.pi / LIGHTMAP_UNITY  # W/m^2 per luxel unit
 SPOT_DEFAULT_RADIUS = 64.0  # q3map2: radius key default, and default distance to a target at the origin
 SPOT_RADIUS_PAD = 16.0  # q3map2: radiusByDist = (radius + 16) / dist
+SUN_DISTANCE_M = 1.0e4  # a sun becomes a point light this far from the map's centre
+SKY_DOME_BANDS = 3  # equal-solid-angle elevation bands of the sky dome
+SKY_DOME_AZIMUTHS = 8  # cells per band
 
 
 def point_intensity_w_sr(photons: float, unit_m: float, light_scale: float = 1.0) -> float:
@@ -176,3 +194,29 @@ def convert_light_entities(entities: list[dict[str, str]], unit_m: float, light_
         lights.append(Q3Light(index, kind, origin, intensity, color,
                               point_intensity_w_sr(photons, unit_m, light_scale), direction, half_angle, extra))
     return lights, skipped
+
+
+def sun_light(color, intensity: float, degrees: float, elevation: float, centre_scene: np.ndarray,
+              light_scale: float = 1.0):
+    """(position, direction to the sun, RGB W/sr) of the point light standing in for a q3map_sun, in scene
+    coordinates (the direction is Quake's ``(cos a cos e, sin a cos e, sin e)`` turned to y up)."""
+    a, e = math.radians(degrees), math.radians(elevation)
+    d_q3 = np.array([math.cos(a) * math.cos(e), math.sin(a) * math.cos(e), math.sin(e)])
+    d = np.array([d_q3[0], d_q3[2], -d_q3[1]])
+    irradiance = intensity * IRRADIANCE_PER_LUXEL * light_scale
+    rgb = display_color_to_linear(color) * irradiance * SUN_DISTANCE_M ** 2
+    return np.asarray(centre_scene, np.float64) + SUN_DISTANCE_M * d, d, rgb
+
+
+def sky_dome_lights(radiance_rgb, centre_scene: np.ndarray):
+    """(positions (N, 3), directions (N, 3), RGB W/sr (N, 3)) of the point lights standing in for a sky of
+    radiance ``radiance_rgb`` (see the module docstring), in scene coordinates (y up)."""
+    n_cells = SKY_DOME_BANDS * SKY_DOME_AZIMUTHS
+    d_omega = 2.0 * math.pi / n_cells
+    cos_t = 1.0 - (np.arange(SKY_DOME_BANDS) + 0.5) / SKY_DOME_BANDS  # band middles in cos(theta)
+    phi = 2.0 * math.pi * (np.arange(SKY_DOME_AZIMUTHS) + 0.5) / SKY_DOME_AZIMUTHS
+    ct, ph = np.meshgrid(cos_t, phi, indexing="ij")
+    st = np.sqrt(1.0 - ct ** 2)
+    dirs = np.stack([st * np.cos(ph), ct, st * np.sin(ph)], axis=-1).reshape(-1, 3)
+    rgb = np.tile(np.asarray(radiance_rgb, np.float64) * d_omega * SUN_DISTANCE_M ** 2, (n_cells, 1))
+    return np.asarray(centre_scene, np.float64) + SUN_DISTANCE_M * dirs, dirs, rgb

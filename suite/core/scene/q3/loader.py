@@ -36,11 +36,11 @@ from suite.core.scene.q3.shaders import ShaderLibrary
 from suite.core.scene.q3.textures import TextureLoader, decode_srgb8, linear_to_srgb
 from suite.core.scene.q3.visibility import Q3Visibility
 
-CONVERTER_VERSION = 1
+CONVERTER_VERSION = 2
 PREFIX = "oa:"
 
 _fs_cache: dict[tuple, PakFS] = {}
-_shader_cache: dict[int, ShaderLibrary] = {}
+_shader_cache: dict[str, tuple[PakFS, ShaderLibrary]] = {}
 _scene_cache: dict[str, Q3Scene] = {}
 last_load_stats: dict = {}
 
@@ -73,10 +73,10 @@ def file_system(extra_paks: tuple[str, ...] = ()) -> PakFS:
 
 
 def _shaders(fs: PakFS) -> ShaderLibrary:
-    if id(fs) not in _shader_cache:
-        _shader_cache.clear()
-        _shader_cache[id(fs)] = ShaderLibrary(fs)
-    return _shader_cache[id(fs)]
+    cached = _shader_cache.get("library")
+    if cached is None or cached[0] is not fs:  # keep the file system alive with it: ids are reused
+        _shader_cache["library"] = (fs, ShaderLibrary(fs))
+    return _shader_cache["library"][1]
 
 
 def available_maps() -> dict[str, list[str]]:
@@ -198,8 +198,10 @@ def load_q3(spec: str, *, unit_m: float | None = None, patch_level: int | None =
     c = info.counts
     lk = c["lights_by_kind"]
     description = (f"OpenArena map '{map_name}'" + (f" ({info.message})" if info.message else "") +
-                   f" from {source}: {c['triangles']} triangles, {c['point_lights']} light entities as point lights "
-                   f"({lk['spot']} spots), {c['surface_light_triangles']} surface-light triangles, "
+                   f" from {source}: {c['triangles']} triangles, {c['point_lights']} point lights "
+                   f"({c['light_entities']} light entities of which {lk['spot']} spots; {lk['sun']} suns; "
+                   f"{lk['sky']} sky-dome lights), "
+                   f"{c['surface_light_triangles']} surface-light triangles, "
                    f"{c['clusters']} clusters. Camera: {cam_desc}.")
     scene = Q3Scene(name=name, camera=camera, description=description, visibility=vis, q3=info, **parts)
     if use_cache:

@@ -75,7 +75,8 @@ class ShaderInfo:
     editor_image: str | None = None  # qer_editorimage
     implicit_image: str | None = None  # q3map2 implicitMap/Mask/Blend
     implicit_mode: str | None = None  # 'map', 'mask' or 'blend'
-    sun: bool = False
+    suns: list[tuple[tuple[float, float, float], float, float, float]] = field(default_factory=list)
+    # q3map_sun / q3map_sunExt / sun: ((r, g, b), intensity, degrees, elevation), one per directive
     sky: bool = False  # skyparms present
     cull: str = "front"
     polygon_offset: bool = False
@@ -144,27 +145,28 @@ class ShaderInfo:
 
 _TOKENS = re.compile(r'"([^"\n]*)"|(\{|\})|([^\s{}"]+)')
 
+# Arguments a directive takes from its own line (tr_shader.c / q3map2 shaders.c). A directive not listed takes
+# the rest of its line (the engine's SkipRestOfLine); further directives may follow a listed one on one line.
+_ARITY = {"map": 1, "clampmap": 1, "alphafunc": 1, "surfaceparm": 1, "q3map_surfacelight": 1,
+          "q3map_lightimage": 1, "qer_editorimage": 1, "cull": 1, "sort": 1, "implicitmap": 1, "implicitmask": 1,
+          "implicitblend": 1, "q3map_lightrgb": 3, "skyparms": 3, "q3map_sun": 6, "sun": 6, "portal": 0,
+          "polygonoffset": 0, "nopicmip": 0, "nomipmaps": 0, "depthwrite": 0, "detail": 0, "qer_nocarve": 0,
+          "q3map_globaltexture": 0, "q3map_notjunc": 0, "q3map_nonplanar": 0, "q3map_nolightmap": 0}
+
 
 def _strip_comments(text: str) -> str:
-    text = re.sub(r"/\*.*?\*/", " ", text, flags=re.S)
+    text = re.sub(r"/\*.*?\*/", lambda m: "\n" * m.group(0).count("\n"), text, flags=re.S)
     return re.sub(r"//[^\n]*", "", text)
 
 
-def _lines(text: str):
-    """Token lines: braces are separate lines, so that ``name {`` and ``{ map x }`` parse like separate lines."""
-    for raw in _strip_comments(text).splitlines():
-        tokens: list[str] = []
+def _tokens(text: str) -> list[tuple[str, int]]:
+    """(token, line number); braces are tokens of their own, quotes are removed."""
+    out = []
+    for line_no, raw in enumerate(_strip_comments(text).splitlines()):
         for m in _TOKENS.finditer(raw):
             quoted, brace, bare = m.groups()
-            if brace:
-                if tokens:
-                    yield tokens
-                    tokens = []
-                yield [brace]
-            else:
-                tokens.append(quoted if quoted is not None else bare)
-        if tokens:
-            yield tokens
+            out.append((brace or (quoted if quoted is not None else bare), line_no))
+    return out
 
 
 def _float(tokens, i, default=0.0):
@@ -175,42 +177,52 @@ def _float(tokens, i, default=0.0):
 
 
 def parse_shader_text(text: str, source: str = "") -> dict[str, ShaderInfo]:
-    """Every shader in one script, by lower-case name (the first definition in the text wins). A malformed
-    block (unbalanced braces) ends the file's parse, as the engine skips the rest of a bad file."""
+    """Every shader in one script, by lower-case name (the first definition in the text wins). Parsed as the
+    engine does: a token stream in which a directive reads its arguments from its own line. A malformed block
+    (unbalanced braces) ends the file's parse, as the engine skips the rest of a bad file."""
     shaders: dict[str, ShaderInfo] = {}
-    lines = list(_lines(text))
-    i, n = 0, len(lines)
+    toks = _tokens(text)
+    n = len(toks)
+    i = 0
     while i < n:
-        toks = lines[i]
-        if toks == ["{"] or toks == ["}"]:
-            i += 1
-            continue
-        name = toks[0]
+        name, _ = toks[i]
         i += 1
-        if i >= n or lines[i] != ["{"]:
-            continue  # a stray token line; the engine would stop here too
+        if name in ("{", "}"):
+            continue
+        if i >= n or toks[i][0] != "{":
+            continue  # a stray token; the engine would complain and go on
         i += 1
         info = ShaderInfo(name=name, defined=True, source=source)
         depth, stage = 1, None
         while i < n and depth > 0:
-            toks = lines[i]
+            tok, line = toks[i]
             i += 1
-            if toks == ["{"]:
+            if tok == "{":
                 depth += 1
                 if depth == 2:
                     stage = Stage()
                 continue
-            if toks == ["}"]:
+            if tok == "}":
                 if depth == 2 and stage is not None:
                     info.stages.append(stage)
                     stage = None
                 depth -= 1
                 continue
-            key = toks[0].lower()
+            key = tok.lower()
+            # Arguments: the following tokens on the same line, up to the directive's arity.
+            args = [tok]
+            limit = _ARITY.get(key, 10 ** 6)
+            if key == "blendfunc" and i < n and toks[i][1] == line and toks[i][0].lower() in _BLEND_SHORTHANDS:
+                limit = 1
+            elif key == "blendfunc":
+                limit = 2
+            while i < n and toks[i][1] == line and toks[i][0] not in ("{", "}") and len(args) <= limit:
+                args.append(toks[i][0])
+                i += 1
             if depth == 2 and stage is not None:
-                _stage_directive(stage, key, toks)
+                _stage_directive(stage, key, args)
             elif depth == 1:
-                _global_directive(info, key, toks)
+                _global_directive(info, key, args)
         if depth != 0:
             break
         shaders.setdefault(name.lower(), info)
@@ -242,8 +254,9 @@ def _global_directive(info: ShaderInfo, key: str, toks: list[str]) -> None:
         info.light_rgb = (_float(toks, 1), _float(toks, 2), _float(toks, 3))
     elif key == "qer_editorimage" and len(toks) > 1:
         info.editor_image = toks[1]
-    elif key in ("q3map_sun", "q3map_sunext", "sun"):
-        info.sun = True
+    elif key in ("q3map_sun", "q3map_sunext", "sun") and len(toks) > 6:
+        info.suns.append(((_float(toks, 1), _float(toks, 2), _float(toks, 3)), _float(toks, 4), _float(toks, 5),
+                          _float(toks, 6)))
     elif key == "skyparms":
         info.sky = True
     elif key == "cull" and len(toks) > 1:
