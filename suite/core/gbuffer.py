@@ -4,6 +4,10 @@ Tracing one ray through each pixel centre gives the same visible surface as rast
 centres, on either backend. The camera model is Mitsuba's ``perspective`` sensor with ``fov_axis='x'``, so
 pixel (row i, column j) looks along ``forward + (2 s_x - 1) tan(fov/2) right - (2 s_y - 1) tan(fov/2)/aspect up``
 with ``s = ((j + 0.5)/W, (i + 0.5)/H)``; :func:`project` is its inverse.
+
+The tracer skips transparent texels of alpha-tested materials (:mod:`suite.core.trace.alpha`), so a pixel shows
+what lies behind them. Each pixel carries its material index and shading kind (``material``, ``kind``,
+:meth:`GBuffer.kind_mask`) so that methods can branch on mirrors, glass and glossy surfaces.
 """
 from __future__ import annotations
 

@@ -8,7 +8,9 @@ Two references exist for a scene at time ``t_s`` and a resolution:
   lighting), the ground truth for the direct-lighting methods.
 
 The scene goes to Mitsuba through :func:`suite.core.scene.mitsuba_io.to_mitsuba_dict` with a box pixel filter, so
-the renderer sees exactly our triangles, materials, lights, animation state and camera pose.
+the renderer sees exactly our triangles, materials, lights, animation state and camera pose. Scenes with
+alpha-tested materials are rendered with ``volpath`` instead (:func:`alpha_aware_integrator`): Mitsuba's
+``path`` and ``direct`` do not let shadow rays through ``mask`` surfaces.
 
 Rendering happens in *passes*: ``spp`` samples per pixel are split over ``passes`` renders with different
 seeds, averaged with weights proportional to their sample counts. Passes bound the memory of one render and

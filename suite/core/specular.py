@@ -12,8 +12,9 @@ Light transport, per pixel (one pixel-centre primary ray, like the G-buffer):
   (1 - F) eta_ti^2, Mitsuba's radiance scaling for the solid-angle compression at the interface). Total internal
   reflection has F = 1 and no refracted ray;
 * alpha-tested surfaces are skipped by the tracer itself where transparent (:mod:`suite.core.trace.alpha`);
-* ``max_bounces`` limits the specular interactions along a path (default 5). A surface reached after
-  ``max_bounces`` of them adds only its emission.
+* ``max_bounces`` (default 5) is the number of specular interactions a path may make and still be lit at its
+  end: a diffuse or glossy surface reached after at most ``max_bounces`` of them gets direct lighting; one more
+  specular interaction is traced only to add the emission of what it reaches.
 
 That is what Mitsuba's ``path`` integrator computes with ``max_depth = max_bounces + 2`` on scenes where no light
 reaches a diffuse or glossy surface by way of another one (no indirect diffuse light, no caustics): Mitsuba
@@ -88,10 +89,13 @@ class _Vertices:
 
 
 def _shading_normal(mat, v: _Vertices):
-    """The normal a material's BSDF is evaluated around: toward the viewer for two-sided ones (diffuse always),
-    the interpolated normal as stored for one-sided ones (their back side then evaluates to zero)."""
-    if mat.shading_kind == "diffuse" or mat.twosided:
+    """The normal a material's BSDF is evaluated around: for diffuse surfaces the G-buffer's (the side they are
+    seen from); for two-sided glossy ones the interpolated normal turned toward the viewer, as Mitsuba's
+    ``twosided`` does; for one-sided ones the interpolated normal as stored (their back evaluates to zero)."""
+    if mat.shading_kind == "diffuse":
         return v.ns_view
+    if mat.twosided:
+        return np.where(_dot(-v.d, v.ns)[:, None] < 0, -v.ns, v.ns)
     return v.ns
 
 
@@ -221,18 +225,19 @@ def _continue_specular(scene, v: _Vertices, shift):
 
 
 def render_materials(scene, tracer, t_s: float, resolution=None, max_bounces: int = DEFAULT_MAX_BOUNCES,
-                     area_samples: int = 16, seed: int = 0) -> MaterialFrame:
+                     area_samples: int = 16, seed: int = 0, prev_t_s: float | None = None) -> MaterialFrame:
     """Renders the scene at ``t_s`` with every material kind (see the module docstring for the transport).
 
     Equivalent Mitsuba reference: ``path`` with ``max_depth = max_bounces + 2`` (``volpath`` when the scene has
     alpha-tested materials, whose shadow rays Mitsuba's ``path`` does not pass through) on scenes without
     indirect diffuse light. Point lights are exact; area lights use ``area_samples`` samples per vertex.
+    ``prev_t_s`` gives the G-buffer's motion vectors (as :func:`suite.core.gbuffer.render_gbuffer`).
     """
     if max_bounces < 0:
         from suite.errors import UserError
 
         raise UserError(f"max_bounces must be >= 0, got {max_bounces}")
-    g, o64, d64, hits = trace_primary(scene, tracer, t_s, resolution)
+    g, o64, d64, hits = trace_primary(scene, tracer, t_s, resolution, prev_t_s)
     h, w = g.depth.shape
     positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
     lights = scene.lights_at(t_s)

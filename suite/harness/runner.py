@@ -63,6 +63,13 @@ def scene_names() -> list[str]:
     return list(list_scenes())
 
 
+def is_map_spec(spec: str) -> bool:
+    """``oa:<map>`` (and ``oa:<map>@<pak>``): a map whose existence is checked when it is loaded."""
+    from suite.core.scene.q3 import is_q3_spec
+
+    return str(spec).lower().startswith("oa:") and is_q3_spec(spec)
+
+
 def make_tracer(backend: str, scene):
     from suite.core.trace import make
 
@@ -175,9 +182,9 @@ def make_config(method: str, *, scene=None, backend=None, resolution=None, frame
     cfg["scene"] = str(cfg["scene"])
     if not os.path.isfile(cfg["scene"]):
         names = scene_names()
-        if cfg["scene"] not in names:
+        if cfg["scene"] not in names and not is_map_spec(cfg["scene"]):
             raise UserError(f"unknown scene '{cfg['scene']}' (choose from {', '.join(names)}, "
-                            f"or give a path to a Mitsuba XML file)")
+                            f"oa:<map> for an OpenArena map, or give a path to a Mitsuba XML file)")
     else:
         cfg["scene"] = os.path.abspath(cfg["scene"])
     cfg["scene_digest"] = _scene_identity(cfg["scene"])

@@ -12,7 +12,7 @@ from suite.errors import UserError
 from suite.core.scene.builder import CameraScript, SceneBuilder
 from suite.core.scene.embedded import ARENA_GRID, ARENA_ROOM_HALF_M, EMBEDDED, arena_corridors, arena_room_centers
 
-BUILT_IN_CODE = ("living_room", "atrium", "arena")
+BUILT_IN_CODE = ("living_room", "atrium", "arena", "gallery")
 SAMPLE_DT_S = 1.0 / 120.0
 
 
@@ -306,6 +306,15 @@ def test_arena_has_one_moving_object_and_one_moving_light(scenes):
 def test_other_embedded_scenes_are_static(scenes):
     assert not scenes["living_room"].is_dynamic
     assert not scenes["atrium"].is_dynamic
+    assert not scenes["gallery"].is_dynamic
+
+
+def test_gallery_has_one_of_each_material_kind_and_both_light_types(scenes):
+    scene = scenes["gallery"]
+    used = {scene.materials[m].kind for m in np.unique(scene.face_material)}
+    assert used == {"diffuse", "mirror", "glass", "rough_conductor", "rough_plastic"}
+    assert any(m.is_alpha_tested for m in scene.materials) and scene.has_alpha_tested
+    assert len(scene.point_lights) == 2 and len(scene.area_light_triangles()) == 2
 
 
 # --- builder --------------------------------------------------------------------------------------

@@ -460,9 +460,78 @@ def _cornell() -> Scene:
     return load_mitsuba(mi.cornell_box(), name="cornell", camera_path=cornell_camera_path())
 
 
+# --- gallery --------------------------------------------------------------------------------------
+
+def _grate_opacity(size: int = 64) -> np.ndarray:
+    """(size, size) binary opacity of a grate: a frame, four vertical bars and a cross bar (1 = solid)."""
+    u = (np.arange(size) + 0.5) / size
+    uu, vv = np.meshgrid(u, u, indexing="xy")
+    frame = (uu < 0.08) | (uu > 0.92) | (vv < 0.08) | (vv > 0.92)
+    bars = (np.abs((uu * 5.0) % 1.0 - 0.5) < 0.12) | (np.abs(vv - 0.55) < 0.05)
+    return (frame | bars).astype(np.float32)
+
+
+def gallery() -> Scene:
+    """A materials gallery: mirror, glass sphere, glossy metal and plastic, an alpha-tested grate, point and area light."""
+    b = SceneBuilder()
+    tiles = b.add_material("floor_tiles", albedo=(0.5, 0.5, 0.5),
+                           texture=_checker_texture(8, 8, (0.75, 0.72, 0.66), (0.22, 0.24, 0.30)))
+    back = b.add_material("back_wall", albedo=(0.55, 0.62, 0.70))
+    side = b.add_material("side_wall", albedo=(0.72, 0.62, 0.48))
+    white = b.add_material("pedestal", albedo=(0.80, 0.80, 0.78))
+    wood = b.add_material("mirror_back", albedo=(0.30, 0.20, 0.12))
+    # Parameters as in Mitsuba's plugins (suite.core.scene.model.Material).
+    mirror = b.add_material("mirror", albedo=0.0, kind="mirror", specular_reflectance=(0.92, 0.92, 0.90))
+    glass = b.add_material("glass", albedo=0.0, kind="glass", int_ior=1.5, ext_ior=1.0)
+    gold = b.add_material("gold", albedo=0.0, kind="rough_conductor", roughness=0.2, distribution="ggx",
+                          conductor_eta=(0.143, 0.375, 1.442), conductor_k=(3.983, 2.386, 1.603))
+    plastic = b.add_material("red_plastic", albedo=(0.55, 0.08, 0.06), kind="rough_plastic", roughness=0.15,
+                             distribution="beckmann", int_ior=1.49)
+    grate = b.add_material("grate", albedo=(0.35, 0.37, 0.40), opacity_texture=_grate_opacity())
+
+    # Room: floor, back and side walls; open above and toward the camera.
+    b.add_quad(((0.0, 0.0, 0.0), (0.0, 0.0, 4.0), (4.0, 0.0, 0.0)), tiles)  # normal +y
+    _axis_rect(b, 2, -4.0, (-4.0, 4.0), (0.0, 3.0), +1.0, back)
+    _axis_rect(b, 0, -4.0, (0.0, 3.0), (-4.0, 4.0), +1.0, side)
+    _axis_rect(b, 0, 4.0, (0.0, 3.0), (-4.0, 4.0), -1.0, side)
+    # A one-sided mirror panel turned toward the room, with a wooden back 2 cm behind it.
+    n = np.array([-0.8, 0.0, 0.6])
+    t = np.cross([0.0, 1.0, 0.0], n)  # horizontal, cross(t, up) = n
+    c = np.array([2.9, 1.3, -2.3])
+    b.add_quad((c, 0.8 * t, np.array([0.0, 1.0, 0.0])), mirror)
+    b.add_quad((c - 0.02 * n, np.array([0.0, 1.0, 0.0]), 0.8 * t), wood)
+    # Glass sphere on a pedestal, glossy gold sphere and a plastic block on the floor.
+    b.add_box((-1.35, 0.0, -1.65), (-0.65, 0.35, -0.95), white, open_faces=("-y",))
+    b.add_sphere((-1.0, 0.85, -1.3), 0.5, 48, glass)
+    b.add_sphere((0.7, 0.45, -2.5), 0.45, 48, gold)
+    b.add_box((-3.0, 0.0, -3.2), (-2.1, 0.8, -2.3), plastic, open_faces=("-y",))
+    # An alpha-tested grate standing between the key light and the floor in front of it.
+    b.add_quad(((1.7, 0.7, -0.6), (0.7, 0.0, 0.0), (0.0, 0.7, 0.0)), grate)
+
+    b.add_point_light("key", (1.6, 2.6, -1.6), 9.0 * WARM_WHITE)
+    b.add_point_light("fill", (-2.6, 2.3, 0.8), 4.0 * np.array([0.85, 0.9, 1.0]))
+    b.add_area_light_quad("panel", (-0.3, 2.9, -1.6), (0.8, 0.8), (0.0, -1.0, 0.0), 6.0 * WARM_WHITE)
+
+    cam = CameraScript((0.0, 1.5, 3.2), yaw_deg=0.0, pitch_deg=-12.0)
+    cam.walk(1.2, 1.2)                      # toward the objects
+    cam.hold(0.2)
+    cam.turn(-FAST_TURN_DEG, FAST_TURN_S)   # whip-pan right, past the mirror
+    cam.walk(0.4, 0.5)
+    cam.walk(-1.0, 0.9)                     # backward move
+    cam.turn(60.0, 0.8)                     # pan back toward the glass sphere
+    b.set_camera(cam.keys, fov_deg=70.0, resolution=DEFAULT_RESOLUTION, fps=DEFAULT_FPS)
+    return b.build("gallery",
+                   "Open-topped room (8 x 8 m floor) with one of each material kind: a one-sided mirror panel, a "
+                   "glass sphere (IOR 1.5) on a pedestal, a gold GGX sphere (alpha 0.2), a red rough-plastic block "
+                   "(Beckmann, alpha 0.15), an alpha-tested grate (binary opacity, threshold 0.5) casting a "
+                   "patterned shadow; 2 point lights and one emissive panel. Static. Camera: walk, 90 deg turn in "
+                   "0.3 s, backward move, pan.")
+
+
 EMBEDDED: dict[str, Callable[[], Scene]] = {
     "cornell": _cornell,
     "living_room": living_room,
     "atrium": atrium,
     "arena": arena,
+    "gallery": gallery,
 }

@@ -5,10 +5,23 @@ through Mitsuba's own loader, so anything Mitsuba can read as a triangle mesh wo
 writes any Scene back as a Mitsuba dict, so the reference renderer sees exactly the geometry, materials and
 lights that the methods trace.
 
-Supported: ``diffuse`` BSDF with RGB or bitmap reflectance (also behind ``twosided``); ``point`` and
-``area`` emitters; shapes Mitsuba turns into triangle meshes (obj, ply, serialized, rectangle, cube, disk is
-*not* a mesh) plus ``sphere`` tessellated to ``sphere_resolution``. Anything else raises ``UserError``
-naming the plugin and the shape id.
+Supported (docs/core.md has the full mapping):
+
+* BSDFs: ``diffuse`` (RGB or bitmap reflectance), ``conductor`` (kind mirror: eta, k or a ``material`` preset,
+  specular_reflectance), ``roughconductor`` (isotropic ``alpha``, ``beckmann`` or ``ggx``), ``dielectric``
+  (kind glass: int_ior / ext_ior, specular_reflectance / transmittance), ``roughplastic``; ``twosided`` around
+  a diffuse, conductor or plastic BSDF (one BSDF for both sides); ``mask`` with a bitmap ``opacity`` around any of
+  them (the alpha test, threshold 0.5). Bitmaps: bilinear, repeating, identity ``to_uv``; 8/16-bit files are
+  linearised the way Mitsuba looks them up (sRGB unless ``raw``).
+* Emitters: ``point``; ``area`` on a shape, with constant radiance.
+* Shapes Mitsuba turns into triangle meshes (obj, ply, serialized, rectangle, cube; disk is *not* a mesh) plus
+  ``sphere`` tessellated to ``sphere_resolution``; one ``perspective`` sensor with an uncropped ``hdrfilm``.
+  Integrators, samplers and reconstruction filters are rendering settings: accepted and not used.
+
+Strictness: before Mitsuba builds the scene, every node of its parsed description (Mitsuba >= 3.7's scene parser)
+is checked: plugin by plugin, parameter by parameter, nested objects and references included. Anything the suite
+does not model raises a one-line ``UserError`` naming the plugin or parameter and the shape (or object) id.
+Objects a scene dict carries already built are checked through what Mitsuba exposes (class, parameters).
 """
 from __future__ import annotations
 
@@ -186,7 +199,7 @@ class _DescriptionCheck:
                     self.emitter(child, where, in_shape=True)
                 else:
                     self.fail(where, f"unsupported {str(child.type).split('.')[-1].lower()} "
-                                     f"'{child.props.plugin_name()}' nested in a shape")
+                                     f"'{child.props.plugin_name()}' as {plugin} parameter '{name}'")
             elif name == "flip_normals":
                 if bool(value):
                     self.fail(where, f"{plugin} parameter 'flip_normals' is not supported")
@@ -217,7 +230,7 @@ class _DescriptionCheck:
                     self.film(child, where)
                 elif child.type != self.T.Sampler:
                     self.fail(where, f"unsupported {str(child.type).split('.')[-1].lower()} "
-                                     f"'{child.props.plugin_name()}' nested in the sensor")
+                                     f"'{child.props.plugin_name()}' as perspective parameter '{name}'")
             elif name not in _SENSOR_PARAMS:
                 self.fail(where, f"perspective parameter '{name}' is not supported")
             elif name.startswith("principal_point_offset") and float(value) != 0.0:

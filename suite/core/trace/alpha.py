@@ -35,8 +35,9 @@ class AlphaTest:
         self.faces = scene.faces
         self.uvs = scene.uvs
         self.face_material = scene.face_material
-        self.textures = {i: (m.opacity_texture, float(m.alpha_threshold))
-                         for i, m in enumerate(scene.materials) if m.is_alpha_tested}
+        self.textures = {i: m.opacity_texture for i, m in enumerate(scene.materials) if m.is_alpha_tested}
+        self.threshold = np.array([m.alpha_threshold if m.is_alpha_tested else 0.0 for m in scene.materials],
+                                  np.float32)
         tested = np.zeros(len(scene.materials), bool)
         tested[list(self.textures)] = True
         self.face_tested = tested[scene.face_material]
@@ -46,41 +47,38 @@ class AlphaTest:
         """An AlphaTest, or None when no material is alpha-tested (then tracers do nothing extra)."""
         return cls(scene) if any(m.is_alpha_tested for m in scene.materials) else None
 
+    def _tested(self, prim: np.ndarray) -> np.ndarray:
+        """Indices of the hits that lie on alpha-tested faces."""
+        prim = np.asarray(prim)
+        tested = np.zeros(len(prim), bool)
+        hit = prim >= 0
+        tested[hit] = self.face_tested[prim[hit]]
+        return np.nonzero(tested)[0]
+
     def opacity(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(N,) float32 filtered opacity at the hits (1 for faces without an opacity map, 0 for misses)."""
+        """(N,) float32 filtered opacity at the hits (1 on faces without an opacity map, 0 for misses)."""
         prim = np.asarray(prim)
         out = np.where(prim >= 0, 1.0, 0.0).astype(np.float32)
-        hit = prim >= 0
-        tested = np.zeros(len(prim), bool)
-        tested[hit] = self.face_tested[prim[hit]]
-        idx = np.nonzero(tested)[0]
+        idx = self._tested(prim)
         if len(idx) == 0:
             return out
         p = prim[idx]
         w = np.stack([1.0 - u[idx].astype(np.float64) - v[idx], u[idx], v[idx]], axis=-1)[..., None]
-        uv = (self.uvs[self.faces[p]].astype(np.float64) * w).sum(axis=1)
+        uv = (self.uvs[self.faces[p]].astype(np.float64) * w).sum(axis=1)  # interpolated texture coordinates
         mat = self.face_material[p]
-        for mid, (tex, _) in self.textures.items():
+        for mid, tex in self.textures.items():
             sel = mat == mid
             if sel.any():
                 out[idx[sel]] = self._lookup(tex, uv[sel])[:, 0]
         return out
 
     def transparent(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(N,) bool: the hit lies on a texel below its material's alpha threshold (misses are not transparent)."""
+        """(N,) bool: the hit lies where its material's opacity is below its threshold (misses are not)."""
         prim = np.asarray(prim)
-        hit = prim >= 0
-        tested = np.zeros(len(prim), bool)
-        tested[hit] = self.face_tested[prim[hit]]
         out = np.zeros(len(prim), bool)
-        idx = np.nonzero(tested)[0]
-        if len(idx) == 0:
-            return out
-        opacity = self.opacity(prim[idx], u[idx], v[idx])
-        threshold = np.zeros(len(self.textures) and (max(self.textures) + 1), np.float32)
-        for mid, (_, thr) in self.textures.items():
-            threshold[mid] = thr
-        out[idx] = opacity < threshold[self.face_material[prim[idx]]]
+        idx = self._tested(prim)
+        if len(idx):
+            out[idx] = self.opacity(prim[idx], u[idx], v[idx]) < self.threshold[self.face_material[prim[idx]]]
         return out
 
 

@@ -133,8 +133,11 @@ class Tracer:
         if len(d) == 0:
             z = np.zeros(0, np.float32)
             return Hits(z, np.zeros(0, np.int32), z, z)
-        t, prim, u, v = self._closest(o, d, length)
-        if self._alpha is not None:
+        if self._alpha is None:
+            t, prim, u, v = self._closest(o, d, length)
+        else:
+            # embreex writes hit distances into the length buffer it is given: keep the lengths for re-tracing.
+            t, prim, u, v = self._closest(o, d, length.copy())
             t, prim, u, v = self._skip_transparent(o, d, length, t, prim, u, v)
         if np.ndim(tmin) != 0 or tmin > 0:
             t += tmin_a  # inf stays inf
@@ -192,7 +195,7 @@ class Tracer:
             o_sub = np.ascontiguousarray(o_sub.T)
         d_sub, len_sub = np.ascontiguousarray(d[idx]), np.ascontiguousarray(length[idx])
         self.counters["rays_intersect"] += len(idx)
-        t, prim, u, v = self._closest(o_sub, d_sub, len_sub)
+        t, prim, u, v = self._closest(o_sub, d_sub, len_sub.copy())
         _, prim, _, _ = self._skip_transparent(o_sub, d_sub, len_sub, t, prim, u, v)
         out = np.asarray(occluded, bool).copy()
         out[idx] = prim >= 0
@@ -203,10 +206,10 @@ class Tracer:
         self.counters["rays_occluded"] += len(d)
         if len(d) == 0:
             return np.zeros(0, bool)
-        occ = self._occluded(o, d, length)
-        if self._alpha is not None:
-            occ = self._occluded_alpha(o, d, length, occ)
-        return occ
+        if self._alpha is None:
+            return self._occluded(o, d, length)
+        occ = self._occluded(o, d, length.copy())  # embreex overwrites the lengths it is given
+        return self._occluded_alpha(o, d, length, occ)
 
     def occluded_local(self, o, d, length) -> np.ndarray:
         """``occluded`` for rays already in the tracing frame: float32 origins minus ``shift`` (shape (3, N) if
@@ -219,10 +222,10 @@ class Tracer:
         self.counters["rays_occluded"] += n
         if n == 0:
             return np.zeros(0, bool)
-        occ = self._occluded(o, d, length)
-        if self._alpha is not None:
-            occ = self._occluded_alpha(o, d, length, occ)
-        return occ
+        if self._alpha is None:
+            return self._occluded(o, d, length)
+        occ = self._occluded(o, d, length.copy())  # embreex overwrites the lengths it is given
+        return self._occluded_alpha(o, d, length, occ)
 
     def update(self, t_s: float) -> None:
         """Moves animated objects to their pose at ``t_s`` (no-op for static scenes)."""

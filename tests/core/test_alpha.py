@@ -1,0 +1,129 @@
+"""Alpha testing in the tracers: transparent texels do not exist for camera rays or shadow rays, on both
+backends, and every re-traced ray is counted."""
+import numpy as np
+import pytest
+
+from suite.core.gbuffer import render_gbuffer
+from suite.core.scene.builder import SceneBuilder
+from suite.core.scene.model import CameraKey, Material
+from suite.core.shading import point_light_visibility
+from suite.core.trace import make
+from suite.core.trace.alpha import MAX_ALPHA_LAYERS
+
+BACKENDS = ["embree", "mitsuba-llvm"]
+
+
+def half_mask(size=16):
+    """Left half (u < 0.5) transparent, right half opaque."""
+    mask = np.zeros((size, size), np.float32)
+    mask[:, size // 2:] = 1.0
+    return mask
+
+
+def screen_scene(layers=1, opacity=None, threshold=0.5):
+    """A wall at z = -1 behind ``layers`` alpha-tested 2 x 2 m quads at z = 0, 0.1, ... (u along +x)."""
+    b = SceneBuilder()
+    wall = b.add_material("wall", albedo=0.5)
+    screen = b.add_material("screen", albedo=0.8, opacity_texture=half_mask() if opacity is None else opacity,
+                            alpha_threshold=threshold)
+    b.add_quad(((0, 0, -1), (3, 0, 0), (0, 3, 0)), wall)
+    for i in range(layers):
+        b.add_quad(((0, 0, 0.1 * i), (1, 0, 0), (0, 1, 0)), screen)
+    b.add_point_light("front", (0, 0, 3), 10.0)
+    b.set_camera([CameraKey(0.0, (0, 0, 3), (0, 0, 0))], fov_deg=40, resolution=(32, 32))
+    return b.build("screen")
+
+
+def rays_toward(xs, z0=3.0):
+    o = np.array([[x, 0.0, z0] for x in xs], np.float32)
+    d = np.tile(np.array([[0.0, 0.0, -1.0]], np.float32), (len(xs), 1))
+    return o, d
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test01_camera_rays_pass_transparent_texels_and_stop_at_opaque_ones(backend):
+    scene = screen_scene()
+    tracer = make(backend, scene)
+    o, d = rays_toward([-0.5, 0.5, -0.2, 0.2])
+    hits = tracer.intersect(o, d)
+    wall_faces, screen_faces = {0, 1}, {2, 3}
+    assert set(hits.prim[[0, 2]]) <= wall_faces and set(hits.prim[[1, 3]]) <= screen_faces
+    np.testing.assert_allclose(hits.t, [4.0, 3.0, 4.0, 3.0], rtol=1e-5)
+    # 4 camera rays + 2 re-traced from past the transparent hits: the counters count the real rays.
+    assert tracer.counters == {"rays_intersect": 6, "rays_occluded": 0}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test02_shadow_rays_pass_transparent_texels(backend):
+    scene = screen_scene()
+    tracer = make(backend, scene)
+    o, d = rays_toward([-0.5, 0.5, 2.5], z0=-0.99)  # from just in front of the wall toward +z
+    d = -d
+    occ = tracer.occluded(o, d, 0.0, 3.5)
+    assert occ.tolist() == [False, True, False]
+    # 3 shadow rays; the 2 that the any-hit query found blocked are resolved with a closest-hit walk (1 ray each,
+    # plus 1 re-trace past the transparent hit).
+    assert tracer.counters == {"rays_intersect": 3, "rays_occluded": 3}
+    # A shadow ray that ends before the screen is never blocked by it, transparent or not.
+    assert not tracer.occluded(o[1:2], d[1:2], 0.0, 0.5)[0]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test03_shadows_in_the_gbuffer_pass_through_the_holes(backend):
+    """point_light_visibility (the compiled shadow-ray path) sees the light through the transparent half only."""
+    scene = screen_scene()
+    tracer = make(backend, scene)
+    g = render_gbuffer(scene, tracer, 0.0, (32, 32))
+    vis = point_light_visibility(g, scene.point_lights, tracer)[..., 0]
+    on_wall = g.valid & (g.position[..., 2] < -0.5)
+    seen_through = on_wall & (np.abs(g.position[..., 0]) < 0.9) & (np.abs(g.position[..., 1]) < 0.9)
+    left, right = g.position[..., 0] < -0.1, g.position[..., 0] > 0.1
+    assert (seen_through & left).sum() > 50 and not (on_wall & right & (np.abs(g.position[..., 0]) < 0.9)
+                                                     & (np.abs(g.position[..., 1]) < 0.9)).any()
+    assert vis[seen_through & left].all()  # the light shines through the holes it is seen through
+    # The opaque half is visible to the camera and itself lit.
+    assert vis[g.valid & (g.position[..., 2] > -0.5) & right].all()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test04_many_layers_and_the_threshold(backend):
+    scene = screen_scene(layers=5)
+    tracer = make(backend, scene)
+    o, d = rays_toward([-0.5])
+    hits = tracer.intersect(o, d)
+    assert hits.prim[0] in (0, 1) and tracer.counters["rays_intersect"] == 6  # 1 ray + 5 re-traces
+    uniform = np.full((4, 4), 0.4, np.float32)
+    assert make(backend, screen_scene(opacity=uniform, threshold=0.5)).intersect(o, d).prim[0] in (0, 1)
+    assert make(backend, screen_scene(opacity=uniform, threshold=0.3)).intersect(o, d).prim[0] in (2, 3)
+    assert MAX_ALPHA_LAYERS >= 16
+
+
+def test05_scenes_without_alpha_tested_materials_pay_nothing():
+    scene = screen_scene()
+    assert scene.has_alpha_tested
+    opaque = screen_scene(opacity=np.ones((2, 2), np.float32))
+    opaque.materials[1] = Material("screen", [0.8] * 3)
+    assert not opaque.has_alpha_tested and make("embree", opaque)._alpha is None
+    tracer = make("embree", opaque)
+    o, d = rays_toward([-0.5, 0.5])
+    tracer.intersect(o, d)
+    tracer.occluded(o, d, 0.0, 10.0)
+    assert tracer.counters == {"rays_intersect": 2, "rays_occluded": 2}
+
+
+def test06_gbuffer_carries_material_ids_and_kinds():
+    from suite.core.scene import load
+
+    scene = load("gallery")
+    g = render_gbuffer(scene, make("embree", scene), 0.0, (96, 54))
+    names = [m.name for m in scene.materials]
+    assert ((g.material >= 0) == g.valid).all() and ((g.kind >= 0) == g.valid).all()
+    for kind in ("diffuse", "mirror", "glass", "rough_conductor", "rough_plastic"):
+        mask = g.kind_mask(kind)
+        assert mask.any(), kind
+        assert {scene.materials[m].shading_kind for m in np.unique(g.material[mask])} == {kind}
+    assert (g.kind_mask("alpha") == g.kind_mask("diffuse")).all()  # the legacy kind shades as diffuse
+    assert (g.material == names.index("grate")).any()
+    # The existing diffuse scenes report only diffuse surfaces.
+    cornell = load("cornell")
+    assert set(np.unique(render_gbuffer(cornell, make("embree", cornell), 0.0, (16, 16)).kind)) <= {-1, 0}
