@@ -50,11 +50,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     transfer.add_argument("--json", action="store_true", help="print JSON")
     transfer.set_defaults(func=cmd_transfer)
 
-    validate = commands.add_parser("validate", help="compare completion times with ns-3 (needs the ns3 package)")
+    validate = commands.add_parser("validate", help="compare completion times with ns-3 (needs the ns3 package); "
+                                                    "--fairness: flows sharing a bottleneck")
     validate.add_argument("--quick", action="store_true", help="a small grid (about a minute)")
     validate.add_argument("--json", action="store_true", help="print the summary as JSON")
     validate.add_argument("--no-write", action="store_true",
                           help="do not overwrite netsim/validation/ with the new table")
+    validate.add_argument("--fairness", action="store_true",
+                          help="the dumbbell instead: N TCP flows through one shared bottleneck (netsim.topology), "
+                               "per-flow completion times and Jain's index against ns-3 (fairness.csv)")
     validate.set_defaults(func=cmd_validate)
     return parser
 
@@ -99,6 +103,19 @@ def cmd_validate(args) -> int:
         raise NetsimError("ns-3 is not installed: pip install 'splitbench[ns3]' (package ns3 >= 3.44, Linux x86_64, "
                         "needs a C++ compiler) to run netsim validate")
     progress = None if args.json else (lambda line: print(line, flush=True))
+    if args.fairness:
+        rows, summary = validate.compare_fairness(quick=args.quick, progress=progress)
+        if not args.no_write:
+            validate.write_fairness_outputs(rows, ns3_version=validate.ns3_version())
+        if args.json:
+            print(json.dumps(summary, indent=2))
+        else:
+            for group, s in summary.items():
+                print(f"{group}: {s['cases']} cases, {s['flows']} flows, per-flow median error "
+                      f"{s['median_rel_error']:.1%}, p90 {s['p90_rel_error']:.1%}; aggregate median "
+                      f"{s['aggregate_median_rel_error']:.1%}; min Jain netsim {s['netsim_jain_min']:.3f}, "
+                      f"ns-3 {s['ns3_jain_min']:.3f}")
+        return 0
     rows, summary = validate.compare(quick=args.quick, progress=progress)
     if not args.no_write:
         validate.write_outputs(rows, summary, ns3_version=validate.ns3_version())

@@ -5,7 +5,7 @@ as soon as it sends them, which is exact for one flow and only approximate for s
 connection or one UDP sender) is a state machine driven by a heap of events, so that the packets of all flows
 reach each link in time order and a shared drop-tail queue sees them interleaved as they really are.
 
-Events (a tuple ``(time, kind, flow id, number, data)``; the heap orders them by that key):
+Events (a tuple ``(time, kind, tie-break, flow id, number, data)``; the heap orders them by that key):
 
 - ``HOP``: a packet reaches a link where the packets of several flows merge (the shared server link in the up
   direction, fed by every client's access link);
@@ -47,6 +47,22 @@ from netsim.tcp import ACK_BYTES, Message, _CongestionState
 
 INF = math.inf
 HOP, WAKE, MSG, FINAL = 0, 1, 2, 3
+_MASK64 = (1 << 64) - 1
+
+
+def tiebreak(salt: int, t: float, fid: int) -> int:
+    """The order of different flows' events at exactly the same time: a hash of (time, flow, seed).
+
+    Sends of several clients at the same instant are common (frames go out at the same frame times). A fixed order
+    (client 0 first) would always let the same client's packets into a shared queue first, a systematic bias no
+    real server has; this order is canonical (it depends on nothing but the time, the flow and the seed) and
+    changes from one instant to the next. ``hash`` of a float is defined arithmetically by Python (stable across
+    runs and platforms); the mixing is SplitMix64's finaliser.
+    """
+    x = (hash(t) ^ salt ^ (fid * 0x9E3779B97F4A7C15)) & _MASK64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _MASK64
+    return x ^ (x >> 31)
 
 
 class Path:
@@ -75,18 +91,25 @@ class Path:
         return sum(wire_bytes / h.rate_bytes_per_s for h in self.hops)
 
     def remap(self, link_map: dict) -> "Path":
-        other = copy.copy(self)
-        other.hops = [link_map[id(h)] for h in self.hops]
-        other.reverse = [link_map[id(r)] for r in self.reverse]
+        """This path over the copies of its links (``link_map``: id of a link -> its copy). Memoised in
+        ``link_map`` too, so that the flows sharing a path share its copy."""
+        other = link_map.get(id(self))
+        if other is None:
+            other = object.__new__(Path)
+            other.__dict__.update(self.__dict__)
+            other.hops = [link_map[id(h)] for h in self.hops]
+            other.reverse = [link_map[id(r)] for r in self.reverse]
+            link_map[id(self)] = other
         return other
 
 
 class Engine:
     """Links, flows and the event heap. ``run()`` processes events; ``clone()`` is an independent copy."""
 
-    def __init__(self, links: list[Link], flows: list):
+    def __init__(self, links: list[Link], flows: list, salt: int = 0):
         self.links = links
         self.flows = flows
+        self.salt = salt & _MASK64  # from the seed: the tie-break order of simultaneous events
         self.heap: list = []
         self.now = -INF
         self.last_event = (-INF,)   # the last event processed: a message may join only after it
@@ -95,11 +118,12 @@ class Engine:
 
     # -- input ---------------------------------------------------------------------------------------------------
     def add_message(self, fid: int, index: int, message: Message) -> None:
-        heapq.heappush(self.heap, (message.at_s, MSG, fid, index, message))
+        at_s = message.at_s
+        heapq.heappush(self.heap, (at_s, MSG, tiebreak(self.salt, at_s, fid), fid, index, message))
 
     def accepts(self, fid: int, index: int, at_s: float) -> bool:
         """Whether a message can still join without changing what this engine has already simulated."""
-        return (at_s, MSG, fid, index) > self.last_event[:4]
+        return (at_s, MSG, tiebreak(self.salt, at_s, fid), fid, index) > self.last_event[:5]
 
     # -- packets -------------------------------------------------------------------------------------------------
     def transmit(self, flow, t: float, wire_bytes: int, payload, keep_order: bool, hop: int = 0) -> None:
@@ -121,8 +145,8 @@ class Engine:
                 t = arrival
                 continue
             flow.packet_number += 1
-            heapq.heappush(self.heap, (arrival, HOP, flow.fid, flow.packet_number,
-                                       (hop, wire_bytes, payload, keep_order)))
+            heapq.heappush(self.heap, (arrival, HOP, tiebreak(self.salt, arrival, flow.fid), flow.fid,
+                                       flow.packet_number, (hop, wire_bytes, payload, keep_order)))
             return
 
     # -- the loop ------------------------------------------------------------------------------------------------
@@ -141,22 +165,22 @@ class Engine:
             self.now = t
             self.last_event = event
             kind = event[1]
-            flow = flows[event[2]]
+            flow = flows[event[3]]
             if kind == WAKE:
-                if event[3] != flow.token:
+                if event[4] != flow.token:
                     continue  # superseded by a later schedule()
                 flow.wake_s = INF
                 flow.on_wake(self, t)
                 flow.schedule(self)
             elif kind == HOP:
-                hop, wire_bytes, payload, keep_order = event[4]
+                hop, wire_bytes, payload, keep_order = event[5]
                 self.transmit(flow, t, wire_bytes, payload, keep_order, hop)
                 flow.schedule(self)
             elif kind == MSG:
-                flow.on_message(self, t, event[3], event[4])
+                flow.on_message(self, t, event[4], event[5])
                 flow.schedule(self)
             else:
-                flow.on_final(self, t, event[3])
+                flow.on_final(self, t, event[4])
             if stop is not None and stop._final_by is ident:
                 return
 
@@ -170,6 +194,7 @@ class Engine:
         other.links = [link_map[id(link)] for link in self.links]
         other.flows = [flow.clone(link_map) for flow in self.flows]
         other.heap = list(self.heap)  # events are immutable tuples (messages are only read)
+        other.salt = self.salt
         other.now = self.now
         other.last_event = self.last_event
         other.ident = object()
@@ -195,10 +220,11 @@ class _Flow:
             self.wake_s = t
             self.token += 1
             if t < INF:
-                heapq.heappush(engine.heap, (t, WAKE, self.fid, self.token, None))
+                heapq.heappush(engine.heap, (t, WAKE, tiebreak(engine.salt, t, self.fid), self.fid, self.token, None))
 
     def _clone_base(self, link_map: dict):
-        other = copy.copy(self)
+        other = object.__new__(type(self))
+        other.__dict__.update(self.__dict__)
         other.path = self.path.remap(link_map)
         state_map = {id(s): s.copy() for s in self._all_states()}
         other.states = {index: state_map[id(s)] for index, s in self.states.items()}
@@ -356,7 +382,7 @@ class TcpFlow(_Flow):
         state = _TcpMessage(message, index, start, start + count)
         self.states[index] = state
         if state.deadline_abs_s < INF:
-            heapq.heappush(engine.heap, (state.deadline_abs_s, FINAL, self.fid, index, None))
+            heapq.heappush(engine.heap, (state.deadline_abs_s, FINAL, 0, self.fid, index, None))
         # Each message starts a new segment (TCP_NODELAY, no Nagle).
         self.seg_bytes.extend([mss] * full)
         if rest:
@@ -715,7 +741,7 @@ class TcpFlow(_Flow):
                 while self.next_done < len(pmsg_end) and pmsg_end[self.next_done] <= rcv_nxt:
                     state = self.pmsgs[self.next_done]
                     state.done_s = arrival
-                    heapq.heappush(engine.heap, (arrival, FINAL, self.fid, state.index, None))
+                    heapq.heappush(engine.heap, (arrival, FINAL, 0, self.fid, state.index, None))
                     self.next_done += 1
         ackq = self.ackq
         ack_delay = self.ack_delay
@@ -1000,7 +1026,7 @@ class UdpFlow(_Flow):
         else:
             settled_s = last_arrival
         state.result = (last_arrival, delivered, lost_ranges, settled_s)
-        heapq.heappush(engine.heap, (max(settled_s, engine.now), FINAL, self.fid, state.index, None))
+        heapq.heappush(engine.heap, (max(settled_s, engine.now), FINAL, 0, self.fid, state.index, None))
 
     def on_final(self, engine: Engine, t: float, index: int) -> None:
         state = self.states.pop(index, None)

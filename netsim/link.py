@@ -18,7 +18,6 @@ Example::
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
@@ -41,16 +40,30 @@ class Packet:
 
 
 class RandomStream:
-    """Uniform(0,1) numbers from a seeded generator, served one by one from numpy blocks."""
+    """Uniform(0,1) numbers from a seeded generator, served one by one from numpy blocks.
+
+    Copies share the generator until one of them needs a new block (copy on write): the topology engine copies
+    every link at each checkpoint, and most links (no loss, no jitter) never draw at all.
+    """
 
     def __init__(self, rng: np.random.Generator):
         self._rng = rng
+        self._owned = True  # False: the generator may be shared with a copy; take a private one before drawing
         self._block: list[float] = []
         self._index = 0
 
+    def _generator(self) -> np.random.Generator:
+        if not self._owned:
+            rng = self._rng
+            bit_generator = type(rng.bit_generator)(0)
+            bit_generator.state = rng.bit_generator.state
+            self._rng = np.random.Generator(bit_generator)
+            self._owned = True
+        return self._rng
+
     def next(self) -> float:
         if self._index >= len(self._block):
-            self._block = self._rng.random(_BLOCK).tolist()
+            self._block = self._generator().random(_BLOCK).tolist()
             self._index = 0
         value = self._block[self._index]
         self._index += 1
@@ -60,7 +73,8 @@ class RandomStream:
         """The next ``count`` numbers, without consuming them (same sequence as ``next()``)."""
         remaining = len(self._block) - self._index
         if remaining < count:
-            self._block = self._block[self._index:] + self._rng.random(max(_BLOCK, count - remaining)).tolist()
+            self._block = self._block[self._index:] + self._generator().random(
+                max(_BLOCK, count - remaining)).tolist()
             self._index = 0
         return np.array(self._block[self._index:self._index + count])
 
@@ -71,15 +85,17 @@ class RandomStream:
         return (self._rng.bit_generator.state, list(self._block), self._index)
 
     def restore(self, state) -> None:
-        self._rng.bit_generator.state = state[0]
+        self._generator().bit_generator.state = state[0]
         self._block = list(state[1])
         self._index = state[2]
 
     def copy(self) -> "RandomStream":
-        """An independent stream that continues with the same numbers (blocks are never modified in place, so
-        the current one is shared)."""
+        """An independent stream that continues with the same numbers. Blocks are never modified in place, so
+        the current one is shared; so is the generator, until either stream draws from it."""
         other = RandomStream.__new__(RandomStream)
-        other._rng = copy.deepcopy(self._rng)
+        other._rng = self._rng
+        other._owned = False
+        self._owned = False
         other._block = self._block
         other._index = self._index
         return other
@@ -307,7 +323,8 @@ class Link:
     def copy(self) -> "Link":
         """An independent link in the same state (queue, loss and jitter streams, counters): the topology engine
         checkpoints a simulation by copying its links."""
-        other = copy.copy(self)
+        other = object.__new__(Link)
+        other.__dict__.update(self.__dict__)
         other.out = list(self.out)
         other.scripted_losses = set(self.scripted_losses)
         other._loss_stream = self._loss_stream.copy()

@@ -32,8 +32,12 @@ class Delivery:
 
     arrival_s: when the last byte is usable at the receiver (TCP: in order); ``math.inf`` if it never completes.
     settled_s: when the receiver holds everything it will ever get (= arrival_s when complete; for an incomplete
-        UDP message, its last useful arrival or the deadline).
+        UDP message, its last useful arrival or the deadline; in a topology, when the fate of its last datagram
+        was decided, or the deadline).
     lost_ranges: [(start, end), ...] byte ranges of the message that never arrived (end exclusive).
+
+    A Delivery from a :class:`~netsim.topology.Topology` is tentative: reading a field brings it up to date with
+    every send submitted so far (docs/netsim.md, "Topologies").
     """
 
     size_bytes: int

@@ -440,14 +440,20 @@ class TcpConnection:
             if horizon_s > cap_s:
                 horizon_s = cap_s
             batch = []
+            last_cum = una
             for entry in ackq:
-                if entry[0] >= horizon_s or entry[1] != entry[2] + 1 or len(batch) >= limit:
+                # Only ACKs that acknowledge new data: a duplicate ACK (the receiver got a segment twice) counts
+                # towards fast retransmit and may release a limited-transmit segment, which the scalar path does.
+                if (entry[0] >= horizon_s or entry[1] != entry[2] + 1 or entry[1] <= last_cum
+                        or len(batch) >= limit):
                     break
+                last_cum = entry[1]
                 batch.append(entry)
             if len(batch) < 4:
                 return 0
             saved_cc = cc.copy()
             b_srtt, b_rttvar, b_min_rtt, b_rto = srtt, rttvar, self.min_rtt_s, self.rto_s
+            sampled = False
             released = []
             u = una
             high = nxt
@@ -461,6 +467,7 @@ class TcpConnection:
                     released.append(0)
                     continue
                 if not retransmitted[cum - 1]:
+                    sampled = True
                     rtt = a_s - send_time[cum - 1]
                     if rtt < b_min_rtt:
                         b_min_rtt = rtt
@@ -486,8 +493,11 @@ class TcpConnection:
                 else:
                     released.append(0)
             cc.cwnd = cwnd
-            b_rto = b_srtt + (4.0 * b_rttvar if b_rttvar > 0.00025 else 0.001)
-            b_rto = min_rto if b_rto < min_rto else (max_rto if b_rto > max_rto else b_rto)
+            if sampled:
+                # A new sample: the RTO follows it (RFC 6298 2.3). Without one (Karn's rule: every ACKed segment
+                # was a retransmission), a backed-off RTO stays as it is, as in the scalar path.
+                b_rto = b_srtt + (4.0 * b_rttvar if b_rttvar > 0.00025 else 0.001)
+                b_rto = min_rto if b_rto < min_rto else (max_rto if b_rto > max_rto else b_rto)
             total = high - nxt
             if total:
                 if seg_wire is None:

@@ -76,7 +76,6 @@ class Topology:
         self.frontier_s = 0.0                  # the last advance(): no send may come earlier
         self._last_at_s: dict = {}             # (client, direction) -> last send time
         self._counts: dict = {}                # flow id -> messages submitted
-        self._deliveries = 0
         if self.server is None:
             # Nothing shared: each (client, direction) is an independent single-path Network.
             self._networks = {(i, d): Network(self.access, seed=derive_seed(self.seed, i, d))
@@ -109,7 +108,7 @@ class Topology:
             for d in DIRECTIONS:
                 flows.append(TcpFlow(_fid(i, d, "tcp"), paths[d], access.tcp, access.max_sim_time_s))
                 flows.append(UdpFlow(_fid(i, d, "udp"), paths[d], access.udp, access.max_sim_time_s))
-        self._committed = Engine(links, flows)
+        self._committed = Engine(links, flows, salt=server_seed(self.seed, "down"))
         self._committed.ident = _FINAL_FOR_GOOD
 
     # -- the API -----------------------------------------------------------------------------------------------
@@ -161,14 +160,14 @@ class Topology:
             return
         tentative = self._tentative
         if tentative is not None and tentative.now < t_s:
-            # The tentative run holds every send and has not passed t_s: run it to t_s and copy it, instead of
-            # simulating the interval again from the old checkpoint.
+            # The tentative run holds every send and has not passed t_s: run it to t_s and make it the checkpoint,
+            # instead of simulating the interval again from the old one (the next read copies it).
             tentative.run(until_s=t_s)
             for message in tentative.finalized:
                 message._final_by = _FINAL_FOR_GOOD
-            tentative.finalized = []
-            self._committed = tentative.clone()
-            self._committed.ident = _FINAL_FOR_GOOD
+            tentative.ident = _FINAL_FOR_GOOD
+            self._committed = tentative
+            self._tentative = None
         else:
             self._committed.run(until_s=t_s)
         self._committed.finalized = []
@@ -262,3 +261,15 @@ def make_topology(access="lan-home", server=None, clients: int = 1, seed: int = 
         raise NetsimError("server spec sets transport options (cc, iw, sack, pacing, max_sim_time_s, ...): "
                           "put them in the access spec, they apply to every connection")
     return Topology(access_config, server_config, int(clients), seed=int(seed))
+
+
+if __name__ == "__main__":
+    # Two clients behind home routers share a 20 Mbit/s server link: 5 MB each, 10 MB together, which take at least
+    # 10 MB * 1500/1460 * 8 / 20 Mbit/s = 4.1 s however the link is shared.
+    server = "bw=20mbps,delay=5ms,queue=200p"
+    shared = make_topology(access="lan-home", server=server, clients=2, seed=0)
+    first = shared.send(5_000_000, client=0, direction="down", protocol="tcp", at_s=0.0)
+    second = shared.send(5_000_000, client=1, direction="down", protocol="tcp", at_s=0.0)
+    alone = make_topology(access="lan-home", server=server, clients=1, seed=0).send(5_000_000, client=0, at_s=0.0)
+    print(f"5 MB alone: {alone.arrival_s:.2f} s; shared: client 0 {first.arrival_s:.2f} s, "
+          f"client 1 {second.arrival_s:.2f} s")

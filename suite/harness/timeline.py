@@ -94,6 +94,7 @@ class Event:
     delivery: Any = None
     timeout_s: float = math.inf
     seq: int = 0
+    final: bool = False         # a loop has waited for its outcome: it can no longer change
 
     @property
     def end_s(self) -> float:
@@ -172,10 +173,12 @@ class Scheduler:
         heapq.heappush(self._heap, (float(at_s), next(self._seq), g))
         return g
 
-    def wait_until(self, t_s: float) -> None:
-        if not self.running or t_s <= self.now_s + EPS_S:
+    def wait_until(self, t_s: float, always: bool = False) -> None:
+        """Suspends the current loop until ``t_s``; with ``always`` it also yields when ``t_s`` is now, behind the
+        loops already queued for this instant."""
+        if not self.running or (t_s <= self.now_s + EPS_S and not always):
             return
-        heapq.heappush(self._heap, (float(t_s), next(self._seq), greenlet.getcurrent()))
+        heapq.heappush(self._heap, (max(float(t_s), self.now_s), next(self._seq), greenlet.getcurrent()))
         self._main.switch()
 
     def block(self, key) -> None:
@@ -245,11 +248,19 @@ class Timeline:
 
     def wait_final(self, ev: Event) -> None:
         """Waits (inside the simulation) until ``ev``'s outcome can no longer change."""
-        while self.sched.running and ev.end_s > self.sched.now_s + EPS_S:
+        if not self.sched.running:
+            return
+        if ev.kind == "message" and not ev.final:
+            # First let every loop that is due before the send (or at the same instant) submit its sends: a
+            # message cannot arrive before it was sent, and reading a tentative outcome that those sends would
+            # change costs the network model a re-simulation.
+            self.sched.wait_until(ev.start_s, always=True)
+        while ev.end_s > self.sched.now_s + EPS_S:
             self.sched.wait_until(ev.end_s)
+        ev.final = True
 
     def is_final(self, ev: Event) -> bool:
-        return not self.sched.running or ev.end_s <= self.sched.now_s + EPS_S
+        return not self.sched.running or ev.final or ev.end_s <= self.sched.now_s + EPS_S
 
     def _send(self, size_bytes: int, client: int, direction: str, protocol: str, ready_s: float):
         # One client's sends in one direction form one ordered stream: a send whose ready time precedes an
@@ -607,7 +618,8 @@ def run_async(timeline: Timeline, n_frames: int, client_period_s: float,
                 if state[c]["started_last"]:
                     return  # no frame of this client can show a later update
                 new = [x for x in inputs[c] if x[0].seq not in consumed]
-                arrived = [x for x in new if x[0].end_s <= sched.now_s + EPS_S]
+                # (a message sent after now cannot have arrived: only those sent before are asked for)
+                arrived = [x for x in new if x[0].start_s <= sched.now_s and x[0].end_s <= sched.now_s + EPS_S]
                 if arrived and timeline.server_free_s() <= sched.now_s + EPS_S:
                     break
                 if arrived:

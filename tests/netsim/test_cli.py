@@ -49,3 +49,25 @@ def test_validation_summary_statistics():
     summary = validate.summarise(rows)["udp"]
     assert summary["median_rel_error"] == 0.2
     assert summary["p90_rel_error"] == pytest.approx(0.36)
+
+
+def test_errors_are_one_line_on_stderr_with_exit_status_2_also_when_mounted(capsys):
+    # python -m netsim and a parent CLI (splitbench) that mounts the commands: the command itself reports.
+    assert cli.main(["transfer", "--bytes", "10", "--bandwidth-mbps", "-5", "--rtt-ms", "20"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("netsim: error:") and "bandwidth" in err[0]
+    parser = argparse.ArgumentParser(prog="splitbench")
+    cli.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["netsim", "transfer", "--bytes", "0", "--bandwidth-mbps", "1", "--rtt-ms", "1"])
+    assert args.func(args) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_python_dash_m_netsim_exits_2_on_a_bad_setting():
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "netsim", "transfer", "--bytes", "100", "--bandwidth-mbps", "10",
+                             "--rtt-ms", "20", "--loss", "2"], capture_output=True, text=True)
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1 and "loss" in result.stderr
