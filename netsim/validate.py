@@ -187,6 +187,24 @@ void attach(ns3::Ptr<ns3::Application> sink) {
 '''
 
 
+def _ns3_tcp_defaults(ns, cc: str, receive_buffer_bytes: int) -> None:
+    """ns-3's TCP configured like netsim's defaults (both validations): MSS 1460 without timestamps, IW 10, SACK,
+    no delayed ACKs, 200 ms minimum RTO, 1 s initial RTO and SYN timeout, no HyStart."""
+    socket_type = "ns3::TcpNewReno" if cc == "newreno" else "ns3::TcpCubic"
+    ns.Config.SetDefault("ns3::TcpL4Protocol::SocketType", ns.StringValue(socket_type))
+    ns.Config.SetDefault("ns3::TcpSocket::SegmentSize", ns.UintegerValue(1460))
+    ns.Config.SetDefault("ns3::TcpSocket::InitialCwnd", ns.UintegerValue(10))
+    ns.Config.SetDefault("ns3::TcpSocket::DelAckCount", ns.UintegerValue(1))
+    ns.Config.SetDefault("ns3::TcpSocket::SndBufSize", ns.UintegerValue(1 << 27))
+    ns.Config.SetDefault("ns3::TcpSocket::RcvBufSize", ns.UintegerValue(receive_buffer_bytes))
+    ns.Config.SetDefault("ns3::TcpSocket::ConnTimeout", ns.TimeValue(ns.Seconds(1.0)))
+    ns.Config.SetDefault("ns3::TcpSocketBase::Timestamp", ns.BooleanValue(False))
+    ns.Config.SetDefault("ns3::TcpSocketBase::Sack", ns.BooleanValue(True))
+    ns.Config.SetDefault("ns3::TcpSocketBase::MinRto", ns.TimeValue(ns.MilliSeconds(200)))
+    ns.Config.SetDefault("ns3::RttEstimator::InitialEstimation", ns.TimeValue(ns.Seconds(1.0)))
+    ns.Config.SetDefault("ns3::TcpCubic::HyStart", ns.BooleanValue(False))
+
+
 def _ns():
     global _NS
     if _NS is None:
@@ -215,19 +233,7 @@ def run_ns3(case: Case, seed: int, on_started=None) -> tuple[float, int, list[tu
     ns.RngSeedManager.SetRun(seed + 1)
     tcp = case.transport.startswith("tcp")
     if tcp:
-        socket_type = "ns3::TcpNewReno" if case.transport == "tcp-newreno" else "ns3::TcpCubic"
-        ns.Config.SetDefault("ns3::TcpL4Protocol::SocketType", ns.StringValue(socket_type))
-        ns.Config.SetDefault("ns3::TcpSocket::SegmentSize", ns.UintegerValue(1460))
-        ns.Config.SetDefault("ns3::TcpSocket::InitialCwnd", ns.UintegerValue(10))
-        ns.Config.SetDefault("ns3::TcpSocket::DelAckCount", ns.UintegerValue(1))
-        ns.Config.SetDefault("ns3::TcpSocket::SndBufSize", ns.UintegerValue(1 << 27))
-        ns.Config.SetDefault("ns3::TcpSocket::RcvBufSize", ns.UintegerValue(RECEIVE_BUFFER_BYTES))
-        ns.Config.SetDefault("ns3::TcpSocket::ConnTimeout", ns.TimeValue(ns.Seconds(1.0)))
-        ns.Config.SetDefault("ns3::TcpSocketBase::Timestamp", ns.BooleanValue(False))
-        ns.Config.SetDefault("ns3::TcpSocketBase::Sack", ns.BooleanValue(True))
-        ns.Config.SetDefault("ns3::TcpSocketBase::MinRto", ns.TimeValue(ns.MilliSeconds(200)))
-        ns.Config.SetDefault("ns3::RttEstimator::InitialEstimation", ns.TimeValue(ns.Seconds(1.0)))
-        ns.Config.SetDefault("ns3::TcpCubic::HyStart", ns.BooleanValue(False))
+        _ns3_tcp_defaults(ns, "newreno" if case.transport == "tcp-newreno" else "cubic", RECEIVE_BUFFER_BYTES)
     nodes = ns.NodeContainer()
     nodes.Create(2)
     p2p = ns.PointToPointHelper()
@@ -584,19 +590,7 @@ def run_fairness_ns3(case: FairnessCase, starts_s: list[float] | None = None) ->
     probe = cppyy.gbl.splitbench_dumbbell
     ns.RngSeedManager.SetSeed(1)
     ns.RngSeedManager.SetRun(1)
-    socket_type = "ns3::TcpNewReno" if case.cc == "newreno" else "ns3::TcpCubic"
-    ns.Config.SetDefault("ns3::TcpL4Protocol::SocketType", ns.StringValue(socket_type))
-    ns.Config.SetDefault("ns3::TcpSocket::SegmentSize", ns.UintegerValue(1460))
-    ns.Config.SetDefault("ns3::TcpSocket::InitialCwnd", ns.UintegerValue(10))
-    ns.Config.SetDefault("ns3::TcpSocket::DelAckCount", ns.UintegerValue(1))
-    ns.Config.SetDefault("ns3::TcpSocket::SndBufSize", ns.UintegerValue(1 << 27))
-    ns.Config.SetDefault("ns3::TcpSocket::RcvBufSize", ns.UintegerValue(FAIRNESS_RECEIVE_BUFFER_BYTES))
-    ns.Config.SetDefault("ns3::TcpSocket::ConnTimeout", ns.TimeValue(ns.Seconds(1.0)))
-    ns.Config.SetDefault("ns3::TcpSocketBase::Timestamp", ns.BooleanValue(False))
-    ns.Config.SetDefault("ns3::TcpSocketBase::Sack", ns.BooleanValue(True))
-    ns.Config.SetDefault("ns3::TcpSocketBase::MinRto", ns.TimeValue(ns.MilliSeconds(200)))
-    ns.Config.SetDefault("ns3::RttEstimator::InitialEstimation", ns.TimeValue(ns.Seconds(1.0)))
-    ns.Config.SetDefault("ns3::TcpCubic::HyStart", ns.BooleanValue(False))
+    _ns3_tcp_defaults(ns, case.cc, FAIRNESS_RECEIVE_BUFFER_BYTES)
     n = case.flows
     server = ns.NodeContainer()
     server.Create(1)
