@@ -1,8 +1,9 @@
 """Scenes: the shared model, embedded defaults and Mitsuba scenes.
 
 ``load(spec)`` accepts an embedded scene name (see :func:`list_scenes`), a path to a Mitsuba 3 XML file,
-a Mitsuba scene dict, or a Quake III / OpenArena map: ``oa:<map>``, ``oa:<map>@<pak>``, a ``.bsp`` path or a
-``.pk3[:<map>]`` path (:mod:`suite.core.scene.q3`, docs/scenes.md).
+a Mitsuba scene dict, a Quake III / OpenArena map: ``oa:<map>``, ``oa:<map>@<pak>``, a ``.bsp`` path or a
+``.pk3[:<map>]`` path (:mod:`suite.core.scene.q3`), or a Wavefront OBJ scene: a ``.obj`` path or a project OBJ scene
+such as ``dabrovic_sponza``, found on the scene search path (:mod:`suite.core.scene.obj`, docs/scenes.md).
 """
 from __future__ import annotations
 
@@ -19,9 +20,9 @@ _cache: dict[str, Scene] = {}
 
 
 def list_scenes() -> dict[str, str]:
-    """Embedded scene names and the OpenArena scenes with scripted camera paths, with a one-line description.
-    An OpenArena scene whose data is missing is listed with a description starting ``unavailable:`` that names
-    the fix."""
+    """Embedded scene names, the project's OBJ scenes and the OpenArena scenes with scripted camera paths, with a
+    one-line description. A scene whose data is missing is listed with a description starting ``unavailable:``
+    that names the fix."""
     from suite.core.scene.embedded import EMBEDDED
     from suite.core.scene.q3 import list_q3_scenes
 
@@ -30,6 +31,9 @@ def list_scenes() -> dict[str, str]:
         return doc[0] if doc else ""
 
     scenes = {name: first_line(EMBEDDED[name]) for name in sorted(EMBEDDED)}
+    from suite.core.scene.obj import list_obj_scenes
+
+    scenes.update(list_obj_scenes())
     scenes.update(list_q3_scenes())
     return scenes
 
@@ -53,9 +57,13 @@ def load(spec) -> Scene:
 
     if is_q3_spec(spec):
         return load_q3(spec)
+    from suite.core.scene.obj import is_obj_spec, load_obj
+
+    if is_obj_spec(spec):
+        return load_obj(spec)
     if spec.endswith(".xml") or os.sep in spec:
         from suite.core.scene.mitsuba_io import load_mitsuba
 
         return load_mitsuba(spec)
-    raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml; "
-                    f"or oa:<map> for an OpenArena map)")
+    raise UserError(f"unknown scene '{spec}' (embedded: {', '.join(sorted(EMBEDDED))}; or a path to a Mitsuba .xml "
+                    f"or a Wavefront .obj; or oa:<map> for an OpenArena map)")
