@@ -3,6 +3,12 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 PYTEST_ARGS ?=
+# Scene files the project does not ship (Dabrovic Sponza) are found on SPLITBENCH_SCENE_PATH (docs/scenes.md); a
+# shared scenes folder beside the checkout joins it when it exists. Without it those scenes are unavailable.
+SHARED_SCENES := $(abspath ../shared/scenes)
+ifneq ($(wildcard $(SHARED_SCENES)),)
+export SPLITBENCH_SCENE_PATH := $(if $(SPLITBENCH_SCENE_PATH),$(SPLITBENCH_SCENE_PATH):)$(SHARED_SCENES)
+endif
 
 .PHONY: setup test smoke reproduce report bench clean
 

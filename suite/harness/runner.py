@@ -184,7 +184,7 @@ def make_config(method: str, *, scene=None, backend=None, resolution=None, frame
         names = scene_names()
         if cfg["scene"] not in names and not is_map_spec(cfg["scene"]):
             raise UserError(f"unknown scene '{cfg['scene']}' (choose from {', '.join(names)}, "
-                            f"oa:<map> for an OpenArena map, or give a path to a Mitsuba XML file)")
+                            f"oa:<map> for an OpenArena map, or give a path to a Mitsuba XML, OBJ, BSP or PK3 file)")
     else:
         cfg["scene"] = os.path.abspath(cfg["scene"])
     cfg["scene_digest"] = _scene_identity(cfg["scene"])
