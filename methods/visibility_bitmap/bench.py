@@ -7,9 +7,12 @@ without running anything:
 
 ``throughput``
     The visibility pass (:func:`.method.visibility_pass`: ray generation from the G-buffer, the suite's
-    ``occluded`` query, the scatter into the mask, the packing) against ``tracer.raw_occluded`` on the very rays
-    the pass traced (recorded from one untimed pass), in one process, interleaved, median of ``--repeats``.
-    Figure of merit: the ratio of rays per second, stage / raw (goal >= 0.90).
+    ``occluded`` query, the scatter into the mask, the packing) against the raw backend on the very rays the pass
+    traced, in one process, interleaved, median of ``--repeats``. Embree: ``tracer.raw_occluded`` on the rays
+    recorded from one untimed pass. Mitsuba llvm/cuda: the device pass (plus the read-back of the packed bitmap
+    the stage does) against ``ray_test`` on the same rays held in device memory, the backend's own rate; the
+    numpy-fed rate of those rays is reported beside it. Figure of merit: the ratio of rays per second, stage / raw
+    (goal >= 0.90).
 ``linearity``
     Server work against pixels x lights (seed 000 §3.2: one shadow ray per pixel and light): the visibility pass
     and the whole server frame (G-buffer + visibility pass) at 3 resolutions x 3 light counts (the first N
@@ -44,16 +47,25 @@ DEFAULT_CODECS = ("none", "lzo", "lz4", "zstd", "zstd:9", "bitplane+lz4", "bitpl
 
 def render_bitmaps(scene, tracer, resolution, frames: int, light_limit: int | None = None) -> list[np.ndarray]:
     """``(H, W, L)`` bool visibility of the first ``frames`` frames of the camera path."""
-    from suite.core.gbuffer import render_gbuffer
     from suite.core.shading import point_light_visibility
 
     out = []
     for i in range(frames):
         t_s = scene.camera.frame_time_s(i)
-        g = render_gbuffer(scene, tracer, t_s, resolution=resolution)
+        g = _server_gbuffer(scene, tracer, t_s, resolution)
         lights = scene.lights_at(t_s)[:light_limit]
-        out.append(point_light_visibility(g, lights, tracer))
+        vis = point_light_visibility(g, lights, tracer)
+        out.append(vis if isinstance(vis, np.ndarray) else vis.to_host())
     return out
+
+
+def _server_gbuffer(scene, tracer, t_s, resolution):
+    """The G-buffer the method's server stage makes: on the device for Mitsuba llvm/cuda, else on the host."""
+    from suite.core.gbuffer import has_device, render_gbuffer, render_gbuffer_device
+
+    if has_device(tracer):
+        return render_gbuffer_device(scene, tracer, t_s, tuple(resolution))
+    return render_gbuffer(scene, tracer, t_s, resolution=tuple(resolution))
 
 
 def codec_table(visibility: list[np.ndarray], layout: str, codec_specs=DEFAULT_CODECS,
@@ -172,10 +184,19 @@ def _timed(fn) -> float:
 
 def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: str = "paper32",
                repeats: int = 7) -> dict:
-    """Rays/s of the method's visibility pass against the raw backend on the same rays (goal: ratio >= 0.90)."""
-    from methods.visibility_bitmap.method import visibility_pass
-    from suite.core.gbuffer import render_gbuffer
+    """Rays/s of the method's visibility pass against the raw backend on the same rays (goal: ratio >= 0.90).
 
+    Embree (host path): the pass from a host G-buffer against ``tracer.raw_occluded`` on the recorded numpy rays.
+    Mitsuba llvm/cuda (device path): the pass from a device G-buffer (ray generation, traversal and bits in one
+    kernel per 32 lights, packing, and the read-back of the packed bitmap the stage does) against Mitsuba's
+    ``ray_test`` on the same rays held in device memory (``raw``: the backend's own rate), and, for reference,
+    against the same rays fed from numpy (``numpy_raw``).
+    """
+    from methods.visibility_bitmap.method import visibility_pass
+    from suite.core.gbuffer import has_device, render_gbuffer
+
+    if has_device(tracer):
+        return _throughput_device(scene, tracer, resolution, t_s, layout, repeats)
     if not hasattr(tracer, "raw_occluded"):
         raise NotImplementedError(f"backend {getattr(tracer, 'name', '?')} has no raw entry point")
     g = render_gbuffer(scene, tracer, t_s, resolution=tuple(resolution))
@@ -199,9 +220,52 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
     stage_rps = rays / float(np.median(stage_s))
     raw_rps = rays / float(np.median(raw_s))
     return {"scene": scene.name, "resolution": list(resolution), "lights": len(lights), "layout": layout,
-            "rays": rays, "repeats": repeats, "stage_ms": 1e3 * float(np.median(stage_s)),
+            "rays": rays, "repeats": repeats, "path": "host", "raw": "numpy rays",
+            "stage_ms": 1e3 * float(np.median(stage_s)),
             "raw_ms": 1e3 * float(np.median(raw_s)), "stage_rays_per_s": stage_rps, "raw_rays_per_s": raw_rps,
             "ratio": stage_rps / raw_rps, "goal": 0.90}
+
+
+def _throughput_device(scene, tracer, resolution, t_s, layout, repeats) -> dict:
+    from methods.visibility_bitmap.method import visibility_pass
+    from suite.core.device.shading import shadow_rays
+    from suite.core.gbuffer import render_gbuffer_device
+
+    dev = tracer.device
+    g = render_gbuffer_device(scene, tracer, t_s, tuple(resolution))
+    lights = scene.lights_at(t_s)
+    rays_dev = shadow_rays(g, lights, tracer)
+    rays = int(sum(dev.dr.width(r.d) for r, _ in rays_dev))
+    host_rays = [(dev.to_host(r.o, np.float32), dev.to_host(r.d, np.float32), dev.to_host(r.maxt, np.float32))
+                 for r, _ in rays_dev]
+
+    def stage():
+        _, raw = visibility_pass(g, lights, tracer, layout)
+        raw.to_host()  # the stage reads the packed bitmap back for the encoder
+
+    def raw():
+        out = [tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]
+        dev.eval(*out)
+
+    def numpy_raw():
+        for o, d, length in host_rays:
+            tracer.raw_occluded(o, d, length)
+
+    stage(), raw(), numpy_raw()  # warm-up (kernel compilation, allocations)
+    stage_s, raw_s, np_s = [], [], []
+    for _ in range(max(repeats, 1)):  # interleaved: machine noise hits all alike
+        stage_s.append(_timed(stage))
+        raw_s.append(_timed(raw))
+        np_s.append(_timed(numpy_raw))
+    stage_rps = rays / float(np.median(stage_s))
+    raw_rps = rays / float(np.median(raw_s))
+    np_rps = rays / float(np.median(np_s))
+    return {"scene": scene.name, "resolution": list(resolution), "lights": len(lights), "layout": layout,
+            "rays": rays, "repeats": repeats, "path": f"device ({dev.variant})",
+            "stage_ms": 1e3 * float(np.median(stage_s)), "raw_ms": 1e3 * float(np.median(raw_s)),
+            "stage_rays_per_s": stage_rps, "raw_rays_per_s": raw_rps, "ratio": stage_rps / raw_rps,
+            "raw": "device-resident rays", "numpy_raw_ms": 1e3 * float(np.median(np_s)),
+            "numpy_raw_rays_per_s": np_rps, "numpy_raw_ratio": np_rps / raw_rps, "goal": 0.90}
 
 
 # ------------------------------------------------------------------------------------------------ linearity
@@ -225,7 +289,6 @@ def linearity(scene, tracer, resolutions, light_counts, t_s: float = 0.5, layout
     pixels only, so its fit is reported beside it.
     """
     from methods.visibility_bitmap.method import visibility_pass
-    from suite.core.gbuffer import render_gbuffer
 
     all_lights = scene.lights_at(t_s)
     if max(light_counts) > len(all_lights):
@@ -237,10 +300,12 @@ def linearity(scene, tracer, resolutions, light_counts, t_s: float = 0.5, layout
             gbuffer_s, visibility_s, rays = [], [], 0
             for _ in range(max(repeats, 1)):
                 t0 = time.perf_counter()
-                g = render_gbuffer(scene, tracer, t_s, resolution=(w, h))
+                g = _server_gbuffer(scene, tracer, t_s, (w, h))
                 t1 = time.perf_counter()
                 before = tracer.counters["rays_occluded"]
-                visibility_pass(g, lights, tracer, layout)
+                _, raw = visibility_pass(g, lights, tracer, layout)
+                if not isinstance(raw, np.ndarray):
+                    raw.to_host()  # as the method's stage does
                 t2 = time.perf_counter()
                 rays = tracer.counters["rays_occluded"] - before
                 gbuffer_s.append(t1 - t0)
@@ -433,10 +498,14 @@ def format_results(out: dict) -> str:
         r = out["throughput"]
         w, h = r["resolution"]
         lines += [f"visibility pass vs raw {r['backend']} occluded: scene {r['scene']} {w}x{h}, {r['lights']} lights, "
-                  f"{r['rays']:,} shadow rays, median of {r['repeats']}",
+                  f"{r['rays']:,} shadow rays, median of {r['repeats']}; {r.get('path', 'host')} path, raw = "
+                  f"{r.get('raw', 'numpy rays')}",
                   f"  stage {r['stage_rays_per_s']:>13,.0f} rays/s ({r['stage_ms']:.1f} ms)   "
                   f"raw {r['raw_rays_per_s']:>13,.0f} rays/s ({r['raw_ms']:.1f} ms)   "
                   f"ratio {r['ratio']:.3f}  (goal >= {r['goal']:.2f})"]
+        if "numpy_raw_rays_per_s" in r:
+            lines.append(f"  raw fed from numpy {r['numpy_raw_rays_per_s']:>13,.0f} rays/s ({r['numpy_raw_ms']:.1f} ms), "
+                         f"{r['numpy_raw_ratio']:.3f} of the device-resident rate")
     if "linearity" in out:
         r = out["linearity"]
         lines.append(f"server work vs pixels x lights: scene {r['scene']}, median of {r['repeats']}")

@@ -97,6 +97,61 @@ def pack(visibility: np.ndarray, layout: str) -> np.ndarray:
     return out.reshape(height, width * bpp)
 
 
+class DeviceBitmap:
+    """A packed bitmap on a tracer's device (:mod:`suite.core.device`): the bytes of :func:`pack` in little-endian
+    uint32 words (``data``, padded to whole words). ``to_host()`` is the explicit read-back: exactly ``pack``'s
+    ``(H, W * bytes_per_pixel)`` uint8 array, and its byte count."""
+
+    def __init__(self, device, width: int, height: int, light_count: int, layout: str, data):
+        self.device, self.width, self.height = device, int(width), int(height)
+        self.light_count, self.layout, self.data = int(light_count), layout, data
+        self.bytes_per_pixel = bytes_per_pixel(layout, light_count)
+
+    @property
+    def nbytes(self) -> int:
+        return self.width * self.height * self.bytes_per_pixel
+
+    def to_host(self, with_bytes: bool = False):
+        if self.nbytes == 0:
+            out = np.zeros((self.height, 0), np.uint8)
+            return (out, 0) if with_bytes else out
+        copy = self.device.to_host(self.data, np.uint32, with_bytes=True)
+        out = copy.array.view(np.uint8)[:self.nbytes].reshape(self.height, self.width * self.bytes_per_pixel)
+        return (out, copy.nbytes) if with_bytes else out
+
+
+def pack_device(visibility, layout: str) -> DeviceBitmap:
+    """:func:`pack` on the device, from a :class:`suite.core.device.DeviceVisibility` (words of bits, as the
+    visibility pass makes them). ``paper32`` and ``words32`` records are those words already (the same bytes); for
+    ``packed8`` (and ``paper32`` without lights) one gather kernel moves each pixel's used bytes into place."""
+    dev = visibility.device
+    dr, U = dev.dr, dev.UInt32
+    light_count = visibility.lights
+    bpp = bytes_per_pixel(layout, light_count)
+    width, height = visibility.width, visibility.height
+    if bpp == visibility.bytes_per_pixel and bpp > 0:
+        return DeviceBitmap(dev, width, height, light_count, layout, visibility.data)
+    n_bytes = width * height * bpp
+    if n_bytes == 0:
+        return DeviceBitmap(dev, width, height, light_count, layout, dr.zeros(U, 1))
+    src_bpp = visibility.bytes_per_pixel
+    out_words = -(-n_bytes // 4)
+    w = dev.arange(out_words)
+    word = dr.zeros(U, out_words)
+    used = -(-light_count // 8)
+    for b in range(4):
+        q = w * 4 + b  # output byte
+        pixel = q // dev.opaque(U, bpp)
+        j = q - pixel * bpp  # byte of the pixel's record
+        take = (q < dev.opaque(U, n_bytes)) & (j < used)
+        src = pixel * src_bpp + j  # the same byte in the source record
+        value = dr.gather(U, visibility.data, src >> 2, take)
+        byte = (value >> ((src & 3) << 3)) & 0xFF
+        word = word | dr.select(take, byte << (8 * b), U(0))
+    dev.eval(word)
+    return DeviceBitmap(dev, width, height, light_count, layout, word)
+
+
 def unpack(bitmap: np.ndarray, width: int, light_count: int, layout: str) -> np.ndarray:
     """Inverse of :func:`pack`: ``(H, W * bytes_per_pixel)`` uint8 (or flat bytes) → ``(H, W, L)`` bool."""
     bpp = bytes_per_pixel(layout, light_count)

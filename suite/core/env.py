@@ -3,9 +3,19 @@
 Import Mitsuba through :func:`mitsuba` rather than ``import mitsuba`` so that ``DRJIT_LIBLLVM_PATH``
 is set before Dr.Jit loads (see :mod:`suite.core.llvm`).
 
-Variants: ``llvm`` → ``llvm_ad_rgb`` (CPU, the default), ``cuda`` → ``cuda_ad_rgb`` (when a GPU is present),
-``scalar`` → ``scalar_rgb`` (last resort, slow; only when asked for by name). ``auto`` picks cuda when a GPU is
-usable, else llvm. There is no silent fall-back: a variant that cannot start raises :class:`UserError`.
+Variants: ``llvm`` → ``llvm_ad_rgb`` (CPU), ``cuda`` → ``cuda_ad_rgb`` (when a GPU is present), ``scalar`` →
+``scalar_rgb`` (last resort, slow; only when asked for by name). ``auto`` picks cuda when a GPU is usable, else
+llvm. There is no silent fall-back: a variant that cannot start raises :class:`UserError`.
+
+The variant is chosen lazily and explicitly, per use:
+
+* a tracer (``make("mitsuba-cuda", scene)``) and a reference render take the variant they are given and keep it
+  (``tracer.variant``; a Mitsuba scene dict from :func:`suite.core.scene.mitsuba_io.to_mitsuba_dict` carries the
+  variant its objects were built with, and rendering it with another one is an error, not a black image);
+* code that only *reads* a scene through Mitsuba (the loader, the embedded Cornell box) uses
+  :func:`default_variant`: ``SPLITBENCH_MI_VARIANT`` if set, else the vectorised variant already active, else the
+  first variant that works on this machine (llvm, then cuda, then scalar). So a CUDA user without libLLVM never
+  needs it, and nothing asks for the LLVM backend before it is really used.
 """
 from __future__ import annotations
 
@@ -17,6 +27,8 @@ from suite.errors import UserError
 from suite.core.llvm import LLVMNotFound, configure_drjit_llvm
 
 VARIANTS = {"llvm": "llvm_ad_rgb", "cuda": "cuda_ad_rgb", "scalar": "scalar_rgb"}
+_SHORT = {v: k for k, v in VARIANTS.items()}
+NO_GPU = "Mitsuba variant 'cuda' needs an NVIDIA GPU with a working driver; none was found"
 
 _configured = False
 
@@ -34,6 +46,12 @@ def _configure_once() -> None:
     _configured = True
 
 
+def llvm_problem() -> str | None:
+    """Why the LLVM variant cannot run here (no suitable libLLVM), or None. Imports nothing heavy."""
+    _configure_once()
+    return os.environ.get("SPLITBENCH_LLVM_PROBLEM") or None
+
+
 def cuda_available() -> bool:
     _configure_once()
     import drjit as dr
@@ -44,29 +62,151 @@ def cuda_available() -> bool:
         return False
 
 
+def llvm_available() -> bool:
+    """A libLLVM >= 16 was found and Dr.Jit's LLVM backend initialises with it."""
+    if llvm_problem():
+        return False
+    import drjit as dr
+
+    try:
+        return bool(dr.has_backend(dr.JitBackend.LLVM))
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def short_name(variant: str) -> str:
+    """``llvm_ad_rgb`` → ``llvm`` (names that are not full variant names are returned unchanged)."""
+    return _SHORT.get(variant, variant)
+
+
 def resolve_variant(name: str = "auto") -> str:
-    """Maps a backend flavour (auto|llvm|cuda|scalar or a full variant name) to a Mitsuba variant."""
+    """Maps a backend flavour (auto|llvm|cuda|scalar or a full variant name) to a Mitsuba variant that can run
+    here; a variant that cannot is a :class:`UserError` naming the fix."""
     _configure_once()
     if name in ("auto", None, ""):
         name = "cuda" if cuda_available() else "llvm"
     variant = VARIANTS.get(name, name)
     if variant not in VARIANTS.values():
         raise UserError(f"unknown Mitsuba variant '{name}' (choose from auto, {', '.join(VARIANTS)})")
-    if variant.startswith("llvm") and os.environ.get("SPLITBENCH_LLVM_PROBLEM"):
-        raise UserError(os.environ["SPLITBENCH_LLVM_PROBLEM"])
+    if variant.startswith("llvm") and llvm_problem():
+        raise UserError(llvm_problem())
     if variant.startswith("cuda") and not cuda_available():
-        raise UserError("Mitsuba variant 'cuda' needs an NVIDIA GPU with a working driver; none was found")
+        raise UserError(NO_GPU)
     return variant
 
 
-def mitsuba(variant: str = "auto"):
-    """Returns the ``mitsuba`` module with the requested variant active."""
-    variant = resolve_variant(variant)
+def active_variant() -> str | None:
+    """The variant Mitsuba has active in this process, or None (Mitsuba not imported or no variant set)."""
+    if "mitsuba" not in sys.modules:
+        return None
+    try:
+        return sys.modules["mitsuba"].variant()
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def default_variant() -> str:
+    """The variant for work whose result does not depend on it (reading scenes through Mitsuba, building dicts
+    when the caller names none): ``$SPLITBENCH_MI_VARIANT`` if set; else the llvm or cuda variant already active in
+    this process; else llvm if it works here, else cuda if a GPU is usable, else scalar. Never fails for a missing
+    libLLVM when another variant can do the job."""
+    explicit = os.environ.get("SPLITBENCH_MI_VARIANT")
+    if explicit:
+        return resolve_variant(explicit)
+    active = active_variant()
+    if active in (VARIANTS["llvm"], VARIANTS["cuda"]):
+        return active
+    if llvm_available():
+        return VARIANTS["llvm"]
+    if cuda_available():
+        return VARIANTS["cuda"]
+    return VARIANTS["scalar"]
+
+
+def mitsuba(variant: str | None = "auto"):
+    """Returns the ``mitsuba`` module with the requested variant active (None: :func:`default_variant`)."""
+    variant = default_variant() if variant is None else resolve_variant(variant)
     import mitsuba as mi
 
     if mi.variant() != variant:
         mi.set_variant(variant)
     return mi
+
+
+def variant_of(obj) -> str | None:
+    """The Mitsuba variant a Mitsuba object or Dr.Jit array was built with, found in nested dicts and lists (the
+    first one found), or None when ``obj`` holds none (plain dicts, numbers, strings)."""
+    if isinstance(obj, dict):
+        for value in obj.values():
+            found = variant_of(value)
+            if found:
+                return found
+        return None
+    if isinstance(obj, (list, tuple)):
+        for value in obj:
+            found = variant_of(value)
+            if found:
+                return found
+        return None
+    if obj is None or isinstance(obj, (str, bytes, int, float, bool)):
+        return None
+    module = type(obj).__module__ or ""
+    if module.startswith("drjit."):
+        if module.startswith("drjit.llvm"):
+            return VARIANTS["llvm"]
+        if module.startswith("drjit.cuda"):
+            return VARIANTS["cuda"]
+        if module.startswith("drjit.scalar"):
+            return VARIANTS["scalar"]
+        return None
+    if not module.startswith("mitsuba"):
+        return None
+    for variant in VARIANTS.values():
+        mod = sys.modules.get(f"mitsuba.{variant}")
+        if mod is None:
+            continue
+        for cls in type(obj).__mro__:
+            if getattr(mod, cls.__name__, None) is cls:
+                return variant
+    return None
+
+
+def check_same_variant(obj, variant: str, what: str = "the scene dict") -> None:
+    """UserError when ``obj`` holds Mitsuba objects of another variant than ``variant``: Mitsuba would accept them
+    and render black."""
+    found = variant_of(obj)
+    if found and found != variant:
+        raise UserError(f"{what} holds Mitsuba objects built for {found}, but it is being used with {variant} "
+                        f"(Mitsuba would render it black): build it with variant='{short_name(variant)}' or use "
+                        f"variant='{short_name(found)}'")
+
+
+def variant_status() -> dict[str, dict]:
+    """Per variant short name: ``{"variant", "available", "detail"}`` on this machine, and ``"auto"``: what
+    ``auto`` resolves to (cheap: no kernel is compiled)."""
+    out = {}
+    problem = llvm_problem()
+    llvm_ok = llvm_available()
+    out["llvm"] = {"variant": VARIANTS["llvm"], "available": llvm_ok,
+                   "detail": f"libLLVM {os.environ.get('DRJIT_LIBLLVM_PATH', '?')}" if llvm_ok
+                   else (problem or "Dr.Jit's LLVM backend did not initialise")}
+    cuda_ok = cuda_available()
+    out["cuda"] = {"variant": VARIANTS["cuda"], "available": cuda_ok,
+                   "detail": "NVIDIA GPU found" if cuda_ok else NO_GPU}
+    try:
+        import mitsuba  # noqa: F401
+
+        out["scalar"] = {"variant": VARIANTS["scalar"], "available": True, "detail": "one ray at a time"}
+    except ImportError as exc:
+        out["scalar"] = {"variant": VARIANTS["scalar"], "available": False, "detail": str(exc)}
+    if cuda_ok:
+        auto = {"variant": VARIANTS["cuda"], "available": True, "detail": "a GPU is usable"}
+    elif llvm_ok:
+        auto = {"variant": VARIANTS["llvm"], "available": True, "detail": "no usable GPU"}
+    else:
+        auto = {"variant": None, "available": False, "detail": f"neither cuda ({NO_GPU}) nor llvm ({out['llvm']['detail']})"}
+    out["auto"] = auto
+    return out
 
 
 def check_llvm_backend() -> str:

@@ -11,7 +11,7 @@ what lies behind them. Each pixel carries its material index and shading kind (`
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -34,6 +34,9 @@ class GBuffer:
     camera_position: np.ndarray  # (3,)
     material: np.ndarray | None = None  # (H, W) int32 index into scene.materials, -1 for background
     kind: np.ndarray | None = None  # (H, W) int8 shading kind (suite.core.scene.model.KIND_CODES), -1 background
+    # The DeviceGBuffer this one was copied from (Mitsuba tracers; then the arrays are read-only, so the two cannot
+    # drift apart): shading on the same tracer uses it instead of uploading the host arrays again.
+    device: object | None = field(default=None, repr=False, compare=False)
 
     def kind_mask(self, kind: str) -> np.ndarray:
         """(H, W) bool: pixels whose visible surface has shading kind ``kind`` ("diffuse", "mirror", "glass",
@@ -147,19 +150,50 @@ def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=
     return p, ng, ns, albedo, emission_table[mat]
 
 
-def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None) -> GBuffer:
+def has_device(tracer) -> bool:
+    """True when the tracer has a Dr.Jit device path (Mitsuba ``llvm_ad_rgb`` / ``cuda_ad_rgb``)."""
+    return getattr(tracer, "device", None) is not None
+
+
+def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None,
+                   device: bool | None = None) -> GBuffer:
     """Traces pixel-centre primary rays for the camera pose at ``t_s``.
 
     ``motion`` maps each pixel to where its surface point was in the frame at ``prev_t_s`` (camera motion and
     rigid object motion); it is zero when ``prev_t_s`` is None.
+
+    A tracer with a device path (Mitsuba ``llvm_ad_rgb`` / ``cuda_ad_rgb``) computes it with the Dr.Jit kernels of
+    :mod:`suite.core.device` and copies it to the host (the same values; ``g.device`` keeps the device copy);
+    ``device=False`` forces the numpy path, which Embree always takes. :func:`render_gbuffer_device` returns the
+    device G-buffer without copying it.
     """
-    return trace_primary(scene, tracer, t_s, resolution, prev_t_s)[0]
+    if device is not False and has_device(tracer):
+        return render_gbuffer_device(scene, tracer, t_s, resolution, prev_t_s).to_host_twin()
+    return trace_primary(scene, tracer, t_s, resolution, prev_t_s, device=False)[0]
 
 
-def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None):
+def render_gbuffer_device(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None):
+    """The G-buffer as a :class:`suite.core.device.DeviceGBuffer` (Dr.Jit arrays that stay on the tracer's device).
+    A tracer without a device path is a UserError."""
+    if not has_device(tracer):
+        raise UserError(f"backend '{getattr(tracer, 'name', type(tracer).__name__)}' has no device path "
+                        "(use a mitsuba backend with the llvm or cuda variant)")
+    from suite.core.device.gbuffer import render_gbuffer as device_gbuffer
+
+    return device_gbuffer(scene, tracer, t_s, resolution, prev_t_s)
+
+
+def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | None = None,
+                  device: bool | None = None):
     """:func:`render_gbuffer` plus what it was made from: ``(g, origins, dirs, hits)`` with float64 pixel-centre
     rays (N, 3) in row-major pixel order and the tracer's :class:`~suite.core.trace.base.Hits` for them."""
     width, height = check_resolution(resolution or scene.camera.resolution)
+    if device is not False and has_device(tracer):
+        from suite.core.device.gbuffer import render_gbuffer as device_gbuffer
+
+        dg = device_gbuffer(scene, tracer, t_s, (width, height), prev_t_s, keep_hits=True)
+        o64, d64 = camera_rays(scene.camera.pose_at(t_s), scene.camera.fov_deg, width, height, dtype=np.float64)
+        return dg.to_host_twin(), o64, d64, dg.hits_to_host()
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
     # float64 rays give exact surface positions below; the tracers take their float32 rounding.

@@ -122,7 +122,7 @@ def _progress(total_spp: int, desc: str):
 
 
 def render_with_stderr(scene_dict: dict, spp: int, passes: int | None = None, seed: int = 0,
-                       variant: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+                       variant: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Renders ``scene_dict`` with ``spp`` samples per pixel in ``passes`` passes.
 
     Returns ``(mean, stderr)``, both float32 ``(H, W, 3)`` C-contiguous. ``mean`` is the sample-count-weighted
@@ -134,16 +134,27 @@ def render_with_stderr(scene_dict: dict, spp: int, passes: int | None = None, se
     which is unbiased for independent passes of any sizes. With a single pass it is unknown and set to inf.
     ``passes=None`` picks :func:`default_passes`.
 
+    ``variant=None`` renders with the variant the dict was built with (``to_mitsuba_dict``'s ``.variant``, or the
+    variant of the Mitsuba objects it holds), ``auto`` for a plain dict. A dict holding objects of another variant
+    than the one asked for is a :class:`UserError`: Mitsuba would render it black without complaint.
+
     The same arguments give bit-identical images when the film uses a ``box`` filter (as references do).
     Filters that splat a sample into several pixels (Mitsuba's default ``gaussian``) accumulate across threads
     in varying order, so repeated renders then differ in the last bits (relative 1e-7).
     """
-    from suite.core.env import mitsuba
+    from suite.core.env import check_same_variant, mitsuba, resolve_variant, short_name, variant_of
 
     spp = int(spp)
     if spp < 1:
         raise UserError(f"spp must be >= 1, got {spp}")
-    mi = mitsuba(variant)
+    built_with = getattr(scene_dict, "variant", "") or variant_of(scene_dict)
+    resolved = resolve_variant(variant if variant is not None else (built_with or "auto"))
+    if built_with and built_with != resolved:
+        raise UserError(f"the scene dict was built for {built_with}, but it is being rendered with {resolved} "
+                        f"(Mitsuba would render it black): build it with variant='{short_name(resolved)}' or "
+                        f"render it with variant='{short_name(built_with)}'")
+    check_same_variant(scene_dict, resolved)  # objects a caller added by hand
+    mi = mitsuba(resolved)
     scene = mi.load_dict(_with_rgb_film(scene_dict))
     film_size = [int(x) for x in scene.sensors()[0].film().size()]
     passes = default_passes(spp, film_size) if passes is None else int(passes)
@@ -178,7 +189,7 @@ def render_with_stderr(scene_dict: dict, spp: int, passes: int | None = None, se
     return np.ascontiguousarray(mean, np.float32), np.ascontiguousarray(stderr, np.float32)
 
 
-def render_mitsuba_dict(scene_dict: dict, spp: int, seed: int = 0, variant: str = "auto",
+def render_mitsuba_dict(scene_dict: dict, spp: int, seed: int = 0, variant: str | None = None,
                         passes: int | None = None) -> np.ndarray:
     """Renders a Mitsuba scene dict and returns the mean image only (float32 ``(H, W, 3)``), see
     :func:`render_with_stderr`."""

@@ -33,8 +33,29 @@ def min_light_distance(scene) -> float:
     return 1e-4 * max(scene.extent, 1e-6)
 
 
-def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.ndarray:
+def _device_gbuffer(g, tracer):
+    """The device G-buffer to shade ``g`` with on ``tracer``'s device path, or None for the host path: ``g`` itself
+    when it is a DeviceGBuffer, else its device twin (from ``render_gbuffer`` on the same tracer), else an upload of
+    it when the tracer has a device path."""
+    from suite.core.device.gbuffer import DeviceGBuffer
+
+    if isinstance(g, DeviceGBuffer):
+        return g
+    dev = getattr(tracer, "device", None)
+    if dev is None:
+        return None
+    twin = getattr(g, "device", None)
+    if twin is not None and twin.device is dev:
+        return twin
+    return DeviceGBuffer.from_host(dev, g)
+
+
+def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20):
     """(H, W, L) bool: True where light l is unobstructed from the G-buffer position (one shadow ray each).
+
+    For a :class:`~suite.core.device.DeviceGBuffer` the rays are generated and traced on the device and the result is
+    a :class:`~suite.core.device.DeviceVisibility` (bits that stay on the device); a host G-buffer made by a tracer
+    with a device path is traced there too and copied back. The rays are the same on both paths.
 
     A light below the surface's horizon (behind its geometric normal) is shadowed by the surface itself and
     gets no ray: its bit is 0. That is the N.L > 0 test every shader applies anyway; skipping those rays
@@ -45,8 +66,15 @@ def point_light_visibility(g, lights, tracer, chunk_rays: int = 1 << 20) -> np.n
     them straight into the tracer's frame, light by light, at most ``chunk_rays`` pixels at a time; the next
     light's rays are generated while the backend traces the current light's.
     """
+    from suite.core.device.gbuffer import DeviceGBuffer
     from suite.core.trace.raygen import ShadowRays
 
+    if isinstance(g, DeviceGBuffer) or (getattr(g, "device", None) is not None
+                                        and g.device.device is getattr(tracer, "device", None)):
+        from suite.core.device import shading as dshade
+
+        vis_dev = dshade.point_light_visibility(_device_gbuffer(g, tracer), lights, tracer)
+        return vis_dev if isinstance(g, DeviceGBuffer) else vis_dev.to_host()
     h, w = g.depth.shape
     n_lights = len(lights)
     vis = np.zeros((h * w, n_lights), bool)
@@ -94,7 +122,18 @@ def shade_point_lights(g, lights, visibility, ambient=None, min_distance: float 
 
     ``ambient`` (float or RGB radiance) is added as ``ambient * rho`` where no light is visible (seed 000
     §5.1, Fig. 9). Returns (H, W, 3) float32 radiance including the G-buffer's emission.
+
+    With a :class:`~suite.core.device.DeviceGBuffer` it shades on the device (``visibility`` a DeviceVisibility, or
+    an (H, W, L) bool array that is uploaded) and returns a :class:`~suite.core.device.DeviceImage`.
     """
+    from suite.core.device.gbuffer import DeviceGBuffer
+
+    if isinstance(g, DeviceGBuffer):
+        from suite.core.device import shading as dshade
+
+        if isinstance(visibility, np.ndarray):
+            visibility = dshade.DeviceVisibility.from_host(g.device, visibility)
+        return dshade.shade_point_lights(g, lights, visibility, ambient, min_distance)
     h, w = g.depth.shape
     out = np.zeros((h, w, 3), np.float64)
     valid = g.valid
@@ -145,6 +184,12 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
     with a jittered sqrt(n) x sqrt(n) grid over the unit square (warped to the triangle), which lowers the
     variance against independent sampling without bias.
     """
+    from suite.core.device.gbuffer import DeviceGBuffer
+
+    if isinstance(g, DeviceGBuffer):  # the device estimator (its own random numbers): a DeviceImage
+        from suite.core.device import shading as dshade
+
+        return dshade.area_light_radiance(g, area_lights, tracer, samples, seed, min_distance)
     h, w = g.depth.shape
     out = np.zeros((h * w, 3), np.float64)
     idx = np.nonzero(g.valid.reshape(-1))[0]
@@ -197,8 +242,22 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
     return out.reshape(h, w, 3).astype(np.float32)
 
 
-def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: int = 0) -> np.ndarray:
-    """Emission + point lights (hard shadows) + area lights (soft shadows): the ``direct`` integrator's image."""
+def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: int = 0,
+                    device: bool | None = None):
+    """Emission + point lights (hard shadows) + area lights (soft shadows): the ``direct`` integrator's image.
+
+    A tracer with a device path computes it with :func:`suite.core.device.direct_lighting` (for a host G-buffer: on
+    its device twin, or an upload of it) and, for a host G-buffer, copies the image back; given a DeviceGBuffer it
+    returns the :class:`~suite.core.device.DeviceImage`. Point-light terms equal the host path's; the area-light
+    samples come from another random generator, so that term agrees within noise. ``device=False`` forces the
+    host path for a host G-buffer.
+    """
+    dg = _device_gbuffer(g, tracer) if device is not False else None
+    if dg is not None:
+        from suite.core.device import shading as dshade
+
+        img = dshade.direct_lighting(scene, dg, tracer, t_s, area_samples=area_samples, seed=seed)
+        return img if dg is g else img.to_host()
     lights = scene.lights_at(t_s)
     min_d = min_light_distance(scene)
     vis = point_light_visibility(g, lights, tracer)

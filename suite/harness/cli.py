@@ -78,7 +78,7 @@ def cmd_list(args) -> int:
             entry["error"] = f"{type(exc).__name__}: {exc}"
         methods[name] = entry
     info = {"methods": methods, "scenes": _safe(_scenes), "backends": _safe(_backends),
-            "net_profiles": _safe(runner.net_profiles)}
+            "backend_status": _safe(_backend_status), "net_profiles": _safe(runner.net_profiles)}
     if args.json:
         _print_json(info)
         return 0
@@ -86,9 +86,14 @@ def cmd_list(args) -> int:
     for name, m in methods.items():
         print(f"  {name:<20} {m.get('mode') or '?':<6} {m['description']}" + (f"  [{m['error']}]" if 'error' in m else ""))
     for title, key in (("scenes", "scenes"), ("backends", "backends"), ("net profiles", "net_profiles")):
-        print(f"{title}:")
+        print(f"{title}:" + (" (on this machine)" if key == "backends" else ""))
         for name, desc in info[key].items():
-            print(f"  {name:<20} {desc}")
+            status = info["backend_status"].get(name) if key == "backends" else None
+            if isinstance(status, dict):
+                mark = "ok" if status["available"] else "unavailable"
+                print(f"  {name:<20} [{mark}: {status['detail']}] {desc}")
+            else:
+                print(f"  {name:<20} {desc}")
     return 0
 
 
@@ -102,6 +107,13 @@ def _backends():
     from suite.core.trace import list_backends
 
     return list_backends()
+
+
+def _backend_status():
+    """Which backends work on this machine and what ``mitsuba`` (auto) resolves to."""
+    from suite.core.trace import backend_status
+
+    return backend_status()
 
 
 def _safe(fn) -> dict:
@@ -242,6 +254,8 @@ def cmd_compare(args) -> int:
 def cmd_bench(args) -> int:
     if args.what == "tracing":
         return _bench_tracing(args.rest)
+    if args.what == "core":
+        return _bench_core(args.rest)
     if args.what == "clients":
         from suite.harness import bench_clients
 
@@ -262,10 +276,10 @@ def bench_document(figures: dict) -> dict:
 
 
 def bench_names() -> list[str]:
-    """``tracing`` plus every method folder that ships a bench.py."""
+    """``tracing``, ``core``, ``clients`` plus every method folder that ships a bench.py."""
     from suite.harness import registry
 
-    return ["tracing", "clients"] + [n for n, spec in registry.discover().items() if spec.has_module("bench")]
+    return ["tracing", "core", "clients"] + [n for n, spec in registry.discover().items() if spec.has_module("bench")]
 
 
 def _method_bench(name: str):
@@ -282,35 +296,149 @@ def _method_bench(name: str):
     return module
 
 
+def _bench_selection(args, runner):
+    """Scenes and backends of ``--scene``/``--backend`` (``all``: every available embedded scene, every backend that
+    works on this machine; comma-separated lists allowed)."""
+    from suite.core.trace import backend_status
+
+    if args.backend == "all":
+        backends = [b for b, st in backend_status().items() if st["available"] and b not in ("mitsuba", "mitsuba-scalar")]
+    else:
+        backends = [b.strip() for b in args.backend.split(",") if b.strip()]
+    for b in backends:
+        if b not in runner.backend_names():
+            raise UserError(f"unknown backend '{b}' (choose from all, {', '.join(runner.backend_names())})")
+    if args.scene == "all":
+        from suite.core.scene import list_scenes
+
+        scenes = [n for n, desc in list_scenes().items() if not str(desc).startswith("unavailable")
+                  and not runner.is_map_spec(n)]
+    else:
+        scenes = [x.strip() for x in args.scene.split(",") if x.strip()]
+    for name in scenes:
+        if not os.path.isfile(name) and name not in runner.scene_names():
+            raise UserError(f"unknown scene '{name}'")
+    return scenes, backends
+
+
+def _store_bench(out_root, name: str, doc: dict) -> Path:
+    from suite.harness import results
+
+    path = Path(out_root) / "bench" / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    results.write_json(path, doc)
+    return path
+
+
 def _bench_tracing(argv) -> int:
     from suite.harness import runner
 
     p = _Parser(prog=f"{PROG} bench tracing", description="suite vs raw backend rays/s and their ratio")
-    p.add_argument("--scene", default="cornell")
-    p.add_argument("--backend", default="embree")
+    p.add_argument("--scene", default="cornell", help="embedded name or XML path, a comma-separated list, or 'all'")
+    p.add_argument("--backend", default="embree", help="a backend, a comma-separated list, or 'all' (every backend "
+                   "that works here)")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--out", default=None, help="results root: store the figures in <out>/bench/tracing.json")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     try:
-        from suite.core.trace import bench
+        import importlib
+
+        bench = importlib.import_module("suite.core.trace.bench")  # through sys.modules (tests substitute it)
     except ImportError as exc:
         raise UserError(f"the tracing benchmark is not available in this installation ({exc})") from None
-
-    if args.backend not in runner.backend_names():
+    if args.repeats < 1:
+        raise UserError("--repeats must be >= 1")
+    if args.backend != "all" and "," not in args.backend and args.backend not in runner.backend_names():
         raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
-    if not os.path.isfile(args.scene) and args.scene not in runner.scene_names():
+    if args.scene != "all" and "," not in args.scene and not os.path.isfile(args.scene) \
+            and args.scene not in runner.scene_names():
         raise UserError(f"unknown scene '{args.scene}'")
-    result = bench_document(bench.run(runner.load_scene(args.scene), args.backend))
+    scenes, backends = _bench_selection(args, runner)
+    rows = []
+    for name in scenes:
+        scene = runner.load_scene(name)
+        for backend in backends:
+            kwargs = {} if args.repeats == 5 else {"repeats": args.repeats}
+            row = bench.run(scene, backend, **kwargs)
+            row.setdefault("backend", backend)
+            rows.append(row)
+    result = bench_document(rows[0] if len(rows) == 1 else {"results": rows, "goal": 0.9})
+    if args.out:
+        _store_bench(args.out, "tracing", result)
     if args.json:
         _print_json(result)
         return 0
-    print(f"tracing benchmark: scene {result['scene']}, backend {args.backend}, {result['rays']:,} shadow rays, "
-          f"median of {result['repeats']}")
+    print(f"tracing benchmark: suite vs raw rays/s, median of {rows[0].get('repeats', '?')} (goal: suite/raw >= 0.90); raw = "
+          "the backend's own rate on rays in its memory (Dr.Jit arrays for Mitsuba)")
     print(f"  host {result['host']['node']} ({result['host']['platform']}), git {result['git']['commit'][:12]}")
-    for query in ("occluded", "intersect"):
-        r = result[query]
-        print(f"  {query:9s}  suite {r['suite_rays_per_s']:>13,.0f} rays/s   raw {r['raw_rays_per_s']:>13,.0f} rays/s"
-              f"   ratio {r['ratio']:.3f}  (goal >= 0.90)")
+    for r in rows:
+        print(f"  {r['scene']} on {r['backend']} ({r.get('interface', 'numpy')}), {r['rays']:,} shadow rays")
+        for query in ("occluded", "intersect"):
+            q = r[query]
+            walk = q.get("queries_per_ray", 1.0)
+            print(f"    {query:9s}  suite {q['suite_rays_per_s']:>13,.0f} rays/s   raw {q['raw_rays_per_s']:>13,.0f} "
+                  f"rays/s   ratio {q['ratio']:.3f}" + (f"   ({walk:.2f} backend queries per ray: the alpha walk)"
+                                                         if walk > 1.0005 else ""))
+            if "numpy" in q:
+                n = q["numpy"]
+                print(f"    {'':9s}  numpy-fed: suite {n['suite_rays_per_s']:>13,.0f}   raw {n['raw_rays_per_s']:>13,.0f}"
+                      f"   ratio {n['ratio']:.3f}   suite/device raw {n['suite_of_device_raw']:.3f}")
+    if args.out:
+        print(f"stored: {Path(args.out) / 'bench' / 'tracing.json'}")
     return 0
+
+
+def _bench_core(argv) -> int:
+    from suite.harness import runner
+
+    p = _Parser(prog=f"{PROG} bench core", description="per-stage ms, rays and pixels of the rendering core")
+    p.add_argument("--scene", default="living_room", help="embedded name or XML path, a comma-separated list, or 'all'")
+    p.add_argument("--backend", default="all", help="a backend, a comma-separated list, or 'all' (default)")
+    p.add_argument("--resolution", default="1920x1080")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--area-samples", type=int, default=4)
+    p.add_argument("--out", default="results", help="results root; the figures go to <out>/bench/core.json")
+    p.add_argument("--no-store", action="store_true")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    from suite.core.trace import bench
+
+    if args.repeats < 1:
+        raise UserError("--repeats must be >= 1")
+    resolution = runner.parse_resolution(args.resolution)
+    scenes, backends = _bench_selection(args, runner)
+    rows = []
+    for name in scenes:
+        scene = runner.load_scene(name)
+        for backend in backends:
+            rows.append(bench.core(scene, backend, resolution, repeats=args.repeats, area_samples=args.area_samples))
+    result = bench_document({"results": rows, "goals": {"gbuffer_over_raw_intersect": "<= 2",
+                                                        "visibility_raw_over_pass": ">= 0.9"}})
+    path = None if args.no_store else _store_bench(args.out, "core", result)
+    if args.json:
+        _print_json(result)
+        return 0
+    print(format_core(rows))
+    print(f"stored: {path}" if path else "not stored (--no-store)")
+    return 0
+
+
+def format_core(rows) -> str:
+    lines = []
+    for r in rows:
+        w, h = r["resolution"]
+        lines.append(f"{r['scene']} {w}x{h} on {r['backend']} [{r['path']}], {r['lights']} point lights, "
+                     f"{r['area_lights']} area-light triangles, median of {r['repeats']}")
+        lines.append(f"  {'stage':26s} {'ms':>9s} {'rays':>12s} {'pixels':>10s} {'bytes':>12s}")
+        for st in r["stages"]:
+            b = f"{st['bytes']:12,d}" if "bytes" in st else f"{'':12s}"
+            lines.append(f"  {st['stage']:26s} {st['ms']:9.1f} {st['rays']:12,d} {st['pixels']:10,d} {b}"
+                         + (f"  ({st['note']})" if st.get("note") else ""))
+        lines.append(f"  G-buffer / raw intersect of the camera rays: {r['gbuffer_over_raw_intersect']:.2f} (goal <= 2)")
+        if "visibility_raw_over_pass" in r:
+            lines.append(f"  visibility pass: raw/pass {r['visibility_raw_over_pass']:.3f} (goal >= 0.9)")
+    return "\n".join(lines)
 
 
 # -------------------------------------------------------------------------------------------------- reproduce
@@ -370,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("run", help="run one method on one scene and network")
     s.add_argument("method")
-    s.add_argument("--scene", default="cornell", help="embedded name or path to a Mitsuba XML scene")
+    s.add_argument("--scene", default="cornell", help="embedded name, oa:<map>, a scene on the search path, or a path to a Mitsuba XML / OBJ / BSP / PK3 file")
     s.add_argument("--backend", default="embree")
     s.add_argument("--resolution", default="160x90", help="WxH")
     s.add_argument("--frames", default=3, type=_int_arg("--frames"))
@@ -415,9 +543,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_compare)
 
-    s = sub.add_parser("bench", help="benchmarks: tracing (suite vs raw backend rays/s), or METHOD (the "
-                       "method's bench.py)")
-    s.add_argument("what", help="tracing [--scene S] [--backend B] [--json], or a method with a bench.py "
+    s = sub.add_parser("bench", help="benchmarks: tracing (suite vs raw backend rays/s), core (per-stage ms of the "
+                       "rendering core), or METHOD (the method's bench.py)")
+    s.add_argument("what", help="tracing [--scene S|all] [--backend B|all] [--out DIR] [--json], core [--scene S] "
+                   "[--backend B|all] [--resolution WxH], or a method with a bench.py "
                    "(its own options; METHOD --help lists them)")
     s.add_argument("rest", nargs=argparse.REMAINDER)
     s.set_defaults(func=cmd_bench)

@@ -7,10 +7,11 @@ from suite.core.gbuffer import render_gbuffer
 from suite.core.scene.builder import SceneBuilder
 from suite.core.scene.model import CameraKey, Material
 from suite.core.shading import point_light_visibility
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
-BACKENDS = ["embree", "mitsuba-llvm"]
+# Every backend; mitsuba-cuda is skipped with its reason where no GPU is usable.
+BACKENDS = backend_params("embree", "mitsuba-llvm", "mitsuba-cuda")
 
 
 def half_mask(size=16):

@@ -11,7 +11,7 @@ from suite.core.scene.mitsuba_io import to_mitsuba_dict
 from suite.core.scene.model import CameraKey
 from suite.core.shading import AreaLights, direct_lighting
 from suite.core.specular import render_materials
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 
 
 def test01_light_list_describes_every_emissive_triangle():
@@ -53,7 +53,7 @@ def lit_floor(subdivisions: int, res=(32, 24)):
     return b.build(f"panel_{n}")
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test02_many_small_emissive_triangles_light_like_one_panel(backend):
     one, many = lit_floor(1), lit_floor(12)
     assert len(one.area_light_triangles()) == 2 and len(many.area_light_triangles()) == 288
@@ -76,7 +76,7 @@ def test03_many_small_triangles_match_mitsuba():
     tracer = make("embree", scene)
     ours = render_materials(scene, tracer, 0.0, area_samples=64, seed=3)
     ref, _ = render_with_stderr(to_mitsuba_dict(scene, 0.0, scene.camera.resolution, integrator={"type": "direct"}),
-                                spp=512, passes=8, seed=1, variant="llvm")
+                                spp=512, passes=8, seed=1)
     g = ours.gbuffer
     floor = g.valid & (g.position[..., 1] < 0.5)
     assert ours.image[floor].mean() == pytest.approx(ref[floor].mean(), rel=0.01)

@@ -22,7 +22,7 @@ from suite.core.reference import render_with_stderr
 from suite.core.scene import load
 from suite.core.scene.mitsuba_io import to_mitsuba_dict
 from suite.core.shading import direct_lighting, point_light_visibility
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 
 
 def edge_mask(scene, g, t_s, tracer):
@@ -57,7 +57,7 @@ def compare_to_mitsuba_direct(scene_name, resolution, ref_spp, our_samples, seed
     ours = runs.mean(axis=0)
     se_ours = runs.std(axis=0, ddof=1) / np.sqrt(len(seeds)) if len(seeds) > 1 else np.zeros_like(ours)
     ref, se_ref = render_with_stderr(to_mitsuba_dict(scene, t_s, resolution, integrator={"type": "direct"}),
-                                     spp=ref_spp, passes=16, seed=7, variant="llvm")
+                                     spp=ref_spp, passes=16, seed=7)
     keep = ~edge_mask(scene, g, t_s, tracer)
     diff = (ours - ref)[keep]
     se = np.sqrt(se_ref ** 2 + se_ours ** 2)[keep]
@@ -67,7 +67,7 @@ def compare_to_mitsuba_direct(scene_name, resolution, ref_spp, our_samples, seed
     return keep.mean(), np.mean(np.abs(z) > 5), bias_z, ours[keep].mean(), ref[keep].mean()
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test01_area_light_direct_lighting_matches_mitsuba_on_cornell(backend):
     kept, outliers, bias_z, ours_mean, ref_mean = compare_to_mitsuba_direct(
         "cornell", (48, 48), ref_spp=2048, our_samples=64, seeds=tuple(range(8)), backend=backend)
@@ -76,7 +76,7 @@ def test01_area_light_direct_lighting_matches_mitsuba_on_cornell(backend):
     assert abs(bias_z) < 5, f"means {ours_mean:.5f} vs {ref_mean:.5f} differ by {bias_z:.1f} standard errors"
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test02_point_light_direct_lighting_matches_mitsuba_on_living_room(backend):
     kept, outliers, bias_z, ours_mean, ref_mean = compare_to_mitsuba_direct(
         "living_room", (64, 36), ref_spp=2048, our_samples=0, seeds=(0,), backend=backend)
@@ -98,7 +98,7 @@ def test03_a_wrong_light_intensity_is_detected():
 
     ours = shade_point_lights(g, brighter, point_light_visibility(g, brighter, tracer))
     ref, se_ref = render_with_stderr(to_mitsuba_dict(scene, t_s, resolution, integrator={"type": "direct"}),
-                                     spp=2048, passes=16, seed=7, variant="llvm")
+                                     spp=2048, passes=16, seed=7)
     keep = ~edge_mask(scene, g, t_s, tracer)
     bias_z = (ours - ref)[keep].sum() / np.sqrt((se_ref[keep] ** 2).sum())
     assert bias_z > 5

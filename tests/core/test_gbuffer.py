@@ -6,7 +6,7 @@ from suite.core.gbuffer import camera_rays, project, render_gbuffer
 from suite.errors import UserError
 from suite.core.scene import load
 from suite.core.scene.mitsuba_io import sensor_dict
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 
 
 def test01_camera_rays_match_mitsuba_perspective_sensor_at_pixel_centres():
@@ -39,7 +39,7 @@ def test02_project_inverts_camera_rays():
     assert (z > 0).all()
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test03_gbuffer_attributes_are_consistent(backend, room_scene):
     g = render_gbuffer(room_scene, make(backend, room_scene), 0.0)
     assert g.valid.all()  # a closed room: every pixel sees a surface

@@ -7,9 +7,10 @@ from suite.core.gbuffer import render_gbuffer
 from suite.core.scene import load
 from suite.core.scene.model import Material, PointLight
 from suite.core.shading import direct_lighting, point_light_visibility, shade_point_lights
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 
-BACKENDS = ["embree", "mitsuba-llvm"]
+# Every backend; mitsuba-cuda is skipped with its reason where no GPU is usable.
+BACKENDS = backend_params("embree", "mitsuba-llvm", "mitsuba-cuda")
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -37,7 +37,7 @@ from suite.core.scene.builder import SceneBuilder
 from suite.core.scene.mitsuba_io import to_mitsuba_dict
 from suite.core.scene.model import CameraKey
 from suite.core.specular import render_materials
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 
 SUPERSAMPLE = 8
 PIXEL_FLOOR = 0.002
@@ -47,7 +47,9 @@ BIAS_FLOOR = 1e-4
 ABSOLUTE_FLOOR = 1e-6
 RES = (48, 36)
 ALPHA_RES = (80, 60)  # the grate's bars and holes need a few pixels each
-BACKENDS = ["embree", "mitsuba-llvm"]
+# Every backend; mitsuba-cuda is skipped with its reason where no GPU is usable.
+BACKENDS = backend_params("embree", "mitsuba-llvm", "mitsuba-cuda")
+CUDA_MARKS = getattr(backend_params("mitsuba-cuda")[0], "marks", ())
 
 
 # --- scenes ---------------------------------------------------------------------------------------
@@ -226,7 +228,7 @@ def render_boxed(scene, backend, **kwargs):
 def reference(builder, args, integrator, spp):
     scene = builder(*args)
     ref, se = render_with_stderr(to_mitsuba_dict(scene, 0.0, scene.camera.resolution, integrator=dict(integrator)),
-                                 spp=spp, passes=16, seed=7, variant="llvm")
+                                 spp=spp, passes=16, seed=7)
     return ref.astype(np.float64), se.astype(np.float64)
 
 
@@ -293,7 +295,8 @@ def test02_glass_matches_mitsuba_path(backend):
     assert compared_pixels(scene, material, edge, "glass") >= 200  # the refracted image, not only the backdrop
 
 
-@pytest.mark.parametrize("distribution, backend", [("ggx", "embree"), ("beckmann", "mitsuba-llvm")])
+@pytest.mark.parametrize("distribution, backend", [("ggx", "embree"), ("beckmann", "mitsuba-llvm"),
+                                                   pytest.param("ggx", "mitsuba-cuda", marks=CUDA_MARKS)])
 def test03_glossy_materials_match_mitsuba_direct(distribution, backend):
     ref, se = reference(*glossy_ref(distribution))
     scene = glossy_scene(distribution)

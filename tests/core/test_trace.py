@@ -5,7 +5,7 @@ import pytest
 from suite.errors import UserError
 from suite.core.gbuffer import camera_rays
 from suite.core.scene import list_scenes, load
-from suite.core.trace import make, offset_ray_origin
+from suite.core.trace import backend_params, make, offset_ray_origin
 
 # Scenes whose data is not installed (OpenArena maps) are listed as "unavailable: <fix>"; they are skipped.
 SCENES = [pytest.param(name, marks=pytest.mark.skip(reason=desc)) if desc.startswith("unavailable") else name
@@ -21,13 +21,17 @@ def random_rays(scene, n, seed):
     return origins, dirs.astype(np.float32)
 
 
+MITSUBA = backend_params("mitsuba-llvm", "mitsuba-cuda")
+
+
+@pytest.mark.parametrize("mitsuba", MITSUBA)
 @pytest.mark.parametrize("scene_name", SCENES)
-def test01_backends_agree_on_hits_primitives_and_distances(scene_name):
+def test01_backends_agree_on_hits_primitives_and_distances(scene_name, mitsuba):
     scene = load(scene_name)
     o1, d1 = random_rays(scene, 20000, seed=1)
     o2, d2 = camera_rays(scene.camera.pose_at(0.0), scene.camera.fov_deg, 96, 54)
     o, d = np.concatenate([o1, o2]), np.concatenate([d1, d2])
-    he, hm = make("embree", scene).intersect(o, d), make("mitsuba-llvm", scene).intersect(o, d)
+    he, hm = make("embree", scene).intersect(o, d), make(mitsuba, scene).intersect(o, d)
     assert np.mean(he.hit == hm.hit) >= 0.999
     assert np.mean(he.prim == hm.prim) >= 0.999
     same = he.hit & hm.hit & (he.prim == hm.prim)
@@ -35,18 +39,19 @@ def test01_backends_agree_on_hits_primitives_and_distances(scene_name):
     assert np.mean(rel <= 1e-4) >= 0.999
 
 
+@pytest.mark.parametrize("mitsuba", MITSUBA)
 @pytest.mark.parametrize("scene_name", ["living_room", "arena"])
-def test02_backends_agree_on_occlusion_with_finite_tmax(scene_name):
+def test02_backends_agree_on_occlusion_with_finite_tmax(scene_name, mitsuba):
     scene = load(scene_name)
     o, d = random_rays(scene, 20000, seed=2)
     tmax = np.random.default_rng(3).uniform(0.1, 5.0, len(o)).astype(np.float32)
     oe = make("embree", scene).occluded(o, d, 0.0, tmax)
-    om = make("mitsuba-llvm", scene).occluded(o, d, 0.0, tmax)
+    om = make(mitsuba, scene).occluded(o, d, 0.0, tmax)
     assert 0.05 < oe.mean() < 0.95  # a meaningful mix of blocked and free rays
     assert np.mean(oe == om) >= 0.999
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test03_tmin_skips_hits_before_it_and_reports_t_from_the_original_origin(backend, room_scene):
     tracer = make(backend, room_scene)
     o = np.array([[0, 1, 0]], np.float32)
@@ -61,7 +66,7 @@ def test03_tmin_skips_hits_before_it_and_reports_t_from_the_original_origin(back
     assert tracer.occluded(o_low, d, 0.0, 0.6)[0] == np.True_
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test04_counters_count_every_ray(backend, room_scene):
     tracer = make(backend, room_scene)
     o = np.zeros((10, 3), np.float32)
@@ -92,7 +97,7 @@ def test05_robust_offset_scales_with_coordinate_magnitude():
     assert shifted == pytest.approx(OFFSET_ULPS * float(np.spacing(np.float32(20.0))), rel=1e-6)
 
 
-@pytest.mark.parametrize("backend", ["embree", "mitsuba-llvm"])
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
 def test06_update_moves_animated_objects(backend):
     scene = load("arena")
     anim = scene.object_animations[0]

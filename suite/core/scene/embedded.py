@@ -456,7 +456,7 @@ def _cornell() -> Scene:
     from suite.core.env import mitsuba
     from suite.core.scene.mitsuba_io import load_mitsuba
 
-    mi = mitsuba("llvm")
+    mi = mitsuba(None)  # reading only: the default variant (suite.core.env.default_variant)
     return load_mitsuba(mi.cornell_box(), name="cornell", camera_path=cornell_camera_path())
 
 

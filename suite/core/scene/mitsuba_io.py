@@ -55,9 +55,11 @@ def _plugin_name(obj) -> str:
 
 
 def _load_mitsuba_object(source):
-    from suite.core.env import mitsuba
+    from suite.core.env import mitsuba, variant_of
 
-    mi = mitsuba("llvm") if os.environ.get("SPLITBENCH_MI_VARIANT") is None else mitsuba(os.environ["SPLITBENCH_MI_VARIANT"])
+    # Reading a scene does not depend on the variant: a dict carrying Mitsuba objects is read with theirs, anything
+    # else with the default one (never the LLVM backend on a machine that only has CUDA; see suite.core.env).
+    mi = mitsuba(variant_of(source) if isinstance(source, dict) else None)
     if not isinstance(source, dict) and not os.path.exists(os.fspath(source)):
         raise UserError(f"scene file '{os.fspath(source)}' does not exist")
     _DescriptionCheck.run(mi, source)  # strictness first: nothing unmodelled reaches the scene silently
@@ -712,13 +714,24 @@ def sensor_dict(mi, scene: Scene, t_s: float, resolution, spp: int, rfilter: str
     }
 
 
+class MitsubaSceneDict(dict):
+    """A Mitsuba scene dict that knows the variant its Mitsuba objects (meshes, BSDFs, bitmaps) were built with:
+    ``.variant``. Mitsuba renders such objects black under another variant, without an error;
+    :func:`suite.core.reference.render_with_stderr` renders with this variant and refuses another one."""
+
+    variant: str = ""
+
+
 def to_mitsuba_dict(scene: Scene, t_s: float = 0.0, resolution=None, integrator=None, spp: int = 64,
-                    variant: str = "llvm", rfilter: str = "box") -> dict:
+                    variant: str | None = None, rfilter: str = "box") -> MitsubaSceneDict:
     """The scene at time ``t_s`` as a Mitsuba dict: one mesh per (object, material) group.
 
     Surfaces are two-sided diffuse, because our shading kernels light both sides of a triangle (a closed
     room seen from inside must not depend on winding). Emissive groups carry an ``area`` emitter with the
     material's radiance; point lights become ``point`` emitters with their intensity (W/sr).
+
+    ``variant`` (auto|llvm|cuda|scalar; None: :func:`suite.core.env.default_variant`) is the variant the dict's
+    objects are built with; the dict carries it (``.variant``) and can only be rendered with it.
     """
     from suite.core.env import mitsuba
 
@@ -726,8 +739,9 @@ def to_mitsuba_dict(scene: Scene, t_s: float = 0.0, resolution=None, integrator=
     resolution = tuple(resolution or scene.camera.resolution)
     positions = scene.positions_at(t_s)
     normals = scene.normals_at(t_s)
-    out = {"type": "scene", "integrator": dict(integrator or {"type": "path", "max_depth": 8}),
-           "sensor": sensor_dict(mi, scene, t_s, resolution, spp, rfilter)}
+    out = MitsubaSceneDict({"type": "scene", "integrator": dict(integrator or {"type": "path", "max_depth": 8}),
+                            "sensor": sensor_dict(mi, scene, t_s, resolution, spp, rfilter)})
+    out.variant = mi.variant()
     groups = np.unique(np.stack([scene.face_object, scene.face_material], axis=1), axis=0)
     for gi, (obj, mat_id) in enumerate(groups):
         sel = np.nonzero((scene.face_object == obj) & (scene.face_material == mat_id))[0]

@@ -3,8 +3,20 @@
 Builds a Mitsuba scene with one mesh for static geometry and one for animated objects (so an update
 re-uploads only moving vertices). Variants: ``llvm_ad_rgb`` on CPU, ``cuda_ad_rgb`` on a GPU, ``scalar_rgb``
 as a last resort (see :mod:`suite.core.env`). Mitsuba rays have no ``tmin``: the base class advances origins.
+
+The tracer keeps its variant (``tracer.variant``) and uses that variant's own types, so switching Mitsuba's active
+variant elsewhere in the process (a loader, a reference) does not change what it builds. Hits are mapped to global
+face indices through the hit shape's registry id (``ShapePtr`` reinterpreted as an integer), never through
+``PreliminaryIntersection.shape_index``: on ``cuda_ad_rgb`` that field is 0 whatever shape was hit, which gave hits
+on moving geometry the static mesh's faces.
+
+Besides the numpy interface of :class:`~suite.core.trace.base.Tracer`, the vectorised variants expose
+``tracer.device`` (:class:`suite.core.device.Device`): the same queries and the G-buffer, shading and visibility
+kernels on Dr.Jit arrays that stay on the device.
 """
 from __future__ import annotations
+
+import sys
 
 import numpy as np
 
@@ -20,8 +32,10 @@ class MitsubaTracer(Tracer):
         super().__init__(scene)
         from suite.core.env import mitsuba
 
-        self.mi = mi = mitsuba(variant)
+        mi = mitsuba(variant)  # resolves (and checks) the variant, and makes it active while the scene is built
         self.variant = mi.variant()
+        self.mi = mi
+        self.m = sys.modules[f"mitsuba.{self.variant}"]  # the variant's own types
         import drjit as dr
 
         self.dr = dr
@@ -32,22 +46,45 @@ class MitsubaTracer(Tracer):
         for i, faces in enumerate(self._parts):
             desc[f"part{i}"] = self._mesh(f"part{i}", positions, faces)
         self.mscene = mi.load_dict(desc)
+        self.query_scene = self.mscene  # what the queries call (a test may wrap it)
         # Shape order in the scene may differ from insertion order: map by id.
-        self._shape_faces = [self._parts[int(s.id()[4:])] for s in self.mscene.shapes()]
+        shapes = list(self.mscene.shapes())
+        self._shape_faces = [self._parts[int(s.id()[4:])] for s in shapes]
         # A static scene's only mesh holds the faces in order: primitive index = face index.
         self._identity_prims = len(self._shape_faces) == 1 and np.array_equal(self._shape_faces[0],
                                                                              np.arange(scene.num_faces))
         if not self.is_scalar:
-            # Shape s's local primitive p is global face _face_table[_shape_first_face[s] + p].
-            self._face_table = mi.Int32(np.concatenate(self._shape_faces).astype(np.int32))
-            self._shape_first_face = mi.UInt32(
-                np.cumsum([0] + [len(f) for f in self._shape_faces[:-1]]).astype(np.uint32))
+            # Shape with registry id r: its local primitive p is global face _face_table[_first_face_by_id[r] + p].
+            m = self.m
+            self._face_table = m.Int32(np.concatenate(self._shape_faces).astype(np.int32))
+            firsts = np.cumsum([0] + [len(f) for f in self._shape_faces[:-1]]).astype(np.uint32)
+            ids = [self.shape_registry_id(s) for s in shapes]
+            table = np.zeros(max(ids) + 1, np.uint32)
+            table[ids] = firsts
+            self._first_face_by_id = m.UInt32(table)
         self._params = mi.traverse(self.mscene) if len(self.dynamic_faces) else None
         self._dynamic_key = None
         if self._params is not None:
             dyn_index = len(self._parts) - 1
             self._dynamic_key = f"part{dyn_index}.vertex_positions"
         self.rebuilds = 0
+        self._device = None
+
+    def shape_registry_id(self, shape) -> int:
+        """The integer a ``ShapePtr`` to ``shape`` holds on this variant (what hits carry in ``pi.shape``)."""
+        m, dr = self.m, self.dr
+        return int(dr.reinterpret_array(m.UInt32, m.ShapePtr(shape))[0])
+
+    @property
+    def device(self):
+        """The Dr.Jit-resident side of this tracer (:class:`suite.core.device.Device`), None for ``scalar_rgb``."""
+        if self.is_scalar:
+            return None
+        if self._device is None:
+            from suite.core.device.context import Device
+
+            self._device = Device(self)
+        return self._device
 
     def _mesh(self, name, positions, faces):
         mi = self.mi
@@ -64,17 +101,20 @@ class MitsubaTracer(Tracer):
         return {"backend": self.name, "variant": self.variant}
 
     def _update(self, t_s: float) -> None:
-        positions = self.local_positions(self.scene.positions_at(t_s))
+        positions_world = self.scene.positions_at(t_s)
+        positions = self.local_positions(positions_world)
         tri = positions[self.scene.faces[self.dynamic_faces]].reshape(-1)
         buffer_type = type(self._params[self._dynamic_key])
         self._params[self._dynamic_key] = buffer_type(np.ascontiguousarray(tri, np.float32))
         self._params.update()
         self.rebuilds += 1
+        if self._device is not None:
+            self._device.on_update(positions_world, t_s)
 
     def _rays(self, o, d, length):
-        mi = self.mi
-        ray = mi.Ray3f(mi.Point3f(o[0], o[1], o[2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-        ray.maxt = mi.Float(length)
+        m = self.m
+        ray = m.Ray3f(m.Point3f(o[0], o[1], o[2]), m.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+        ray.maxt = m.Float(length)
         return ray
 
     @property
@@ -83,9 +123,9 @@ class MitsubaTracer(Tracer):
 
     def _scalar_rays(self, o, d, length):
         """One Mitsuba ray at a time (scalar_rgb, the last-resort variant: correct but slow)."""
-        mi = self.mi
+        m = self.m
         for i in range(len(d)):
-            ray = mi.Ray3f([float(x) for x in o[:, i]], [float(x) for x in d[i]])
+            ray = m.Ray3f([float(x) for x in o[:, i]], [float(x) for x in d[i]])
             ray.maxt = float(length[i])
             yield i, ray
 
@@ -97,37 +137,30 @@ class MitsubaTracer(Tracer):
             uv = np.zeros((2, n), np.float32)
             shapes = list(self.mscene.shapes())
             for i, ray in self._scalar_rays(o, d, length):
-                pi = self.mscene.ray_intersect_preliminary(ray)
+                pi = self.query_scene.ray_intersect_preliminary(ray)
                 if pi.is_valid():
                     faces = self._shape_faces[shapes.index(pi.shape) if len(shapes) > 1 else 0]
                     t[i], prim[i] = pi.t, faces[int(pi.prim_index)]
                     uv[:, i] = pi.prim_uv
             return t, prim, uv[0], uv[1]
-        dr, mi = self.dr, self.mi
-        pi = self.mscene.ray_intersect_preliminary(self._rays(o, d, length), coherent=False)
         # Misses, the global face index and the barycentrics are resolved inside the same Dr.Jit kernel as the
         # traversal (one launch, no numpy passes afterwards): t = inf, prim = -1, u = v = 0 on a miss.
-        valid = pi.is_valid()
-        if self._identity_prims:
-            prim = mi.Int32(pi.prim_index)
-        else:
-            shape = pi.shape_index if len(self._shape_faces) > 1 else dr.zeros(mi.UInt32, n)
-            first = dr.gather(mi.UInt32, self._shape_first_face, shape, valid)
-            prim = dr.gather(mi.Int32, self._face_table, first + pi.prim_index, valid)
-        t = dr.select(valid, pi.t, dr.inf)
-        prim = dr.select(valid, prim, -1)
-        u = dr.select(valid, pi.prim_uv.x, 0.0)
-        v = dr.select(valid, pi.prim_uv.y, 0.0)
-        dr.eval(t, prim, u, v)
+        dev = self.device
+        t, prim, u, v = dev.closest_backend(*self._ray_parts(o, d, length))
+        self.dr.eval(t, prim, u, v)
         return np.array(t, np.float32), np.array(prim, np.int32), np.array(u, np.float32), np.array(v, np.float32)
+
+    def _ray_parts(self, o, d, length):
+        m = self.m
+        return (m.Point3f(o[0], o[1], o[2]), m.Vector3f(d[:, 0], d[:, 1], d[:, 2]), m.Float(length))
 
     def _occluded(self, o, d, length):
         if self.is_scalar:
             out = np.zeros(len(d), bool)
             for i, ray in self._scalar_rays(o, d, length):
-                out[i] = bool(self.mscene.ray_test(ray))
+                out[i] = bool(self.query_scene.ray_test(ray))
             return out
-        return np.array(self.mscene.ray_test(self._rays(o, d, length)), bool)
+        return np.array(self.query_scene.ray_test(self._rays(o, d, length)), bool)
 
     # Raw access for the overhead benchmark: (N, 3) float32 rays handed to Mitsuba directly, as a user would.
     def _raw_ray(self, o, d, length):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from methods.visibility_bitmap import bench
+from suite.core.trace import backend_params
 
 TINY = ["--scene", "living_room", "--lights-scene", "living_room", "--resolution", "32x18", "--repeats", "1",
         "--linearity-resolutions", "16x9,32x18,48x27", "--linearity-lights", "1,2,3", "--linearity-repeats", "1",
@@ -94,3 +95,20 @@ def test06_the_tracing_benchmark_prints_the_environment_with_its_figures(capsys,
     doc = json.loads(capsys.readouterr().out)
     assert doc["occluded"]["ratio"] == 0.5 and doc["git"] == results.environment()["git"]
     assert set(doc["packages"]) == set(results.PACKAGES) and doc["host"]["node"]
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+def test07_device_throughput_compares_the_pass_with_device_resident_raw_rays(backend):
+    """On Mitsuba the pass runs on the device and raw is ray_test on the very rays it traced, held in device
+    memory; the numpy-fed rate of the same rays is reported beside it."""
+    from suite.core.scene import load
+    from suite.core.trace import make
+
+    scene = load("living_room")
+    tracer = make(backend, scene)
+    r = bench.throughput(scene, tracer, (32, 18), repeats=1)
+    assert r["path"].startswith("device") and r["raw"] == "device-resident rays"
+    assert r["rays"] > 0
+    assert r["ratio"] == pytest.approx(r["stage_rays_per_s"] / r["raw_rays_per_s"])
+    assert r["numpy_raw_ratio"] == pytest.approx(r["numpy_raw_rays_per_s"] / r["raw_rays_per_s"])
+    assert "raw fed from numpy" in bench.format_results({"throughput": dict(r, backend=backend)})

@@ -118,3 +118,66 @@ def test05_tiny_pixel_sets_give_the_same_rays_in_both_layouts(n_pixels):
     soa = ShadowRays(p, n, pixels, None, soa=True).toward([0.0, 100.0, 0.0], 1.0)
     assert np.array_equal(aos[0], soa[0].T) and np.array_equal(aos[1], soa[1])
     np.testing.assert_allclose(aos[0], p, rtol=1e-6, atol=1e-6)
+
+
+# --- the device path: the pass on a DeviceGBuffer (Mitsuba llvm_ad_rgb / cuda_ad_rgb) --------------------------------
+
+from suite.core.trace import backend_params  # noqa: E402
+
+DRJIT = backend_params("mitsuba-llvm", "mitsuba-cuda")
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("name, shift", [("living_room", None), ("living_room", (1e4, 1e4, 1e4)), ("arena", None),
+                                         ("gallery", None)])
+def test06_device_pass_is_bit_identical_to_the_straightforward_formulation(backend, name, shift):
+    """The device kernel (rays generated inside the tracing kernel) against the specification traced through the
+    numpy interface of the same backend, from the same G-buffer; also the packed bytes of every layout."""
+    from suite.core.gbuffer import render_gbuffer_device
+    from suite.core.scene import load
+    from suite.core.trace import make
+
+    scene = load(name)
+    if shift is not None:
+        scene = scene.translated(shift)
+    tracer = make(backend, scene)
+    for t_s in (0.0, 0.9):
+        dg = render_gbuffer_device(scene, tracer, t_s, (64, 36))
+        g = dg.to_host()
+        lights = scene.lights_at(t_s)
+        expected = straightforward_visibility(g, lights, tracer)
+        assert expected.any() and not expected.all()
+        for layout in bm.LAYOUTS:
+            if layout == "paper32" and len(lights) > bm.PAPER_MAX_LIGHTS:
+                continue
+            vis, raw = visibility_pass(dg, lights, tracer, layout)
+            got = vis.to_host()
+            host_raw, nbytes = raw.to_host(with_bytes=True)
+            if backend == "mitsuba-llvm":
+                assert np.array_equal(got, expected)
+                assert np.array_equal(host_raw, bm.pack(expected, layout))
+            else:
+                assert np.mean(got == expected) >= 0.999
+            assert np.array_equal(host_raw, bm.pack(got, layout)) and raw.nbytes == host_raw.nbytes
+            assert nbytes >= host_raw.nbytes
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("lights_used", [0, 1, 7, 8, 9, 32, 33, 64, 73])
+def test07_device_packing_matches_pack_for_every_layout_and_light_count(backend, lights_used):
+    from suite.core.gbuffer import render_gbuffer_device
+    from suite.core.scene import load
+    from suite.core.trace import make
+
+    scene = load("arena")
+    tracer = make(backend, scene)
+    dg = render_gbuffer_device(scene, tracer, 0.5, (20, 11))  # 220 pixels: bitmaps that end inside a word
+    lights = scene.lights_at(0.5)[:lights_used]
+    for layout in bm.LAYOUTS:
+        if layout == "paper32" and lights_used > bm.PAPER_MAX_LIGHTS:
+            continue
+        vis, raw = visibility_pass(dg, lights, tracer, layout)
+        got = vis.to_host()
+        assert got.shape == (11, 20, lights_used)
+        assert np.array_equal(raw.to_host(), bm.pack(got, layout))
+        assert raw.nbytes == bm.bitmap_nbytes(20, 11, lights_used, layout)

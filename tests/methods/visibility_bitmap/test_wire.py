@@ -18,7 +18,17 @@ def shadows(lights, t=0, seed=0):
     return vis ^ (rng.random(vis.shape) < 0.02)
 
 
+def needs(codec):
+    """Skips the test when the codec's optional library is missing (python-lzo, lz4, zstandard, PyAV/libx264)."""
+    from methods.visibility_bitmap.codecs import unavailable_reason
+
+    reason = unavailable_reason(codec.split("+")[-1].split(":")[0])
+    if reason:
+        pytest.skip(f"codec {codec} unavailable: {reason}")
+
+
 def pair(lights=3, layout="paper32", codec="none", rows_per_slice=None, repair="previous", keyframe_interval=0):
+    needs(codec)
     enc = wire.FrameEncoder(W, H, lights, layout, codec, rows_per_slice, keyframe_interval)
     dec = wire.FrameDecoder(W, H, lights, layout, repair)
     return enc, dec

@@ -1,0 +1,467 @@
+"""The Dr.Jit side of a Mitsuba tracer: device-resident scene tables, ray queries and explicit host copies.
+
+``tracer.device`` (a :class:`Device`) exists for the vectorised Mitsuba variants (``llvm_ad_rgb``, ``cuda_ad_rgb``;
+None for Embree and ``scalar_rgb``). Everything here works on Dr.Jit arrays of the tracer's variant and stays on the
+device: on ``llvm_ad_rgb`` the kernels are vectorised and multi-threaded on the CPU, on ``cuda_ad_rgb`` they run on
+the GPU. The types are taken from the variant's own module, so a process that switches Mitsuba's active variant in
+between (a loader, a reference render) cannot mix them.
+
+Host memory is reached only through :meth:`Device.to_host` and :meth:`Device.to_device`, which count the bytes they
+move (``device.counters``), so a method can model them as stages with their bytes.
+
+Ray queries (:meth:`Device.closest`, :meth:`Device.occluded_rays`) take rays in the tracing frame (float32 origins
+minus ``tracer.shift``) and build lazily evaluated Dr.Jit expressions, so ray generation, traversal and what
+follows fuse into one kernel. They resolve the global face index from the hit shape's registry id (never
+``shape_index``, which is 0 on ``cuda_ad_rgb`` whatever the shape) and apply the alpha test exactly as the host
+path does (:mod:`suite.core.trace.alpha`), in float64 where it does.
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+from suite.core.trace.alpha import ALPHA_STEP_ULPS, MAX_ALPHA_LAYERS
+from suite.core.trace.base import MAX_RAY_LENGTH
+from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
+
+TWO_M23 = 1.1920928955078125e-07  # 2**-23: a float32 ULP at exponent 0
+
+
+@dataclass
+class HostCopy:
+    """What :meth:`Device.to_host` returns when asked for the byte count too."""
+
+    array: np.ndarray
+    nbytes: int
+
+
+class Device:
+    """Device-resident data and queries of one :class:`~suite.core.trace.mitsuba_backend.MitsubaTracer`."""
+
+    def __init__(self, tracer):
+        import drjit as dr
+
+        self.tracer = tracer
+        self.scene = tracer.scene
+        self.variant = tracer.variant
+        self.m = sys.modules[f"mitsuba.{self.variant}"]  # this variant's types, whatever variant is active
+        self.dr = dr
+        self.is_cuda = self.variant.startswith("cuda")
+        self.name = "cuda" if self.is_cuda else "llvm"
+        m = self.m
+        self.Float, self.Float64, self.UInt32, self.Int32, self.Bool = m.Float, m.Float64, m.UInt32, m.Int32, m.Bool
+        self.Point3f, self.Point3d, self.Vector3f, self.Vector3d = m.Point3f, m.Point3d, m.Vector3f, m.Vector3d
+        self.Point2f, self.Vector2f = m.Point2f, m.Vector2f
+        self.counters = {"bytes_to_host": 0, "bytes_to_device": 0, "copies_to_host": 0, "copies_to_device": 0}
+        self._tables: SceneTables | None = None
+        self._shift = [float(x) for x in tracer.shift]
+
+    # ------------------------------------------------------------------------------------------ basics
+    def opaque(self, dtype, value):
+        """A scalar the kernels read from memory (so a new value never compiles a new kernel)."""
+        return self.dr.opaque(dtype, value)
+
+    def arange(self, n: int):
+        return self.dr.arange(self.UInt32, int(n))
+
+    def sync(self) -> None:
+        """Waits for the device (kernels launch asynchronously on both backends)."""
+        self.dr.sync_thread()
+
+    def eval(self, *values) -> None:
+        """Evaluates ``values`` (one fused kernel where their sizes agree) and waits for them."""
+        self.dr.eval(*values)
+        self.dr.sync_thread()
+
+    def to_host(self, value, dtype=None, with_bytes: bool = False):
+        """Copies a Dr.Jit array to a numpy array (vectors of width 3 or 2 come back as (N, 3) / (N, 2) rows) and
+        counts the bytes. The one place device data becomes host memory."""
+        dr = self.dr
+        if dr.depth_v(value) > 1:
+            # Interleave on the device (x0 y0 z0 x1 ...) into a private buffer: on llvm_ad_rgb numpy then views it
+            # (no second copy; the array keeps the buffer alive), on cuda_ad_rgb it is one device-to-host copy.
+            flat = dr.ravel(value, order="F")
+            dr.eval(flat)
+            a = np.asarray(flat.numpy()).reshape(-1, len(value))
+        else:
+            dr.eval(value)
+            a = np.array(value.numpy())  # a copy: the device array may change later (scatters)
+        nbytes = int(a.nbytes)  # what crossed, before any conversion on the host
+        if dtype is not None and a.dtype != np.dtype(dtype):
+            a = a.astype(dtype)
+        self.counters["bytes_to_host"] += nbytes
+        self.counters["copies_to_host"] += 1
+        return HostCopy(a, nbytes) if with_bytes else a
+
+    def to_device(self, array: np.ndarray, dtype):
+        """Uploads a numpy array as Dr.Jit ``dtype`` (for vector types, (N, k) rows) and counts the bytes."""
+        a = np.asarray(array)
+        if a.ndim == 2:
+            value = dtype(*[np.ascontiguousarray(a[:, c]) for c in range(a.shape[1])])
+        else:
+            value = dtype(np.ascontiguousarray(a))
+        self.counters["bytes_to_device"] += int(a.nbytes)
+        self.counters["copies_to_device"] += 1
+        return value
+
+    # ------------------------------------------------------------------------------------------ tables
+    @property
+    def tables(self) -> "SceneTables":
+        if self._tables is None:
+            self._tables = SceneTables(self)
+        return self._tables
+
+    def on_update(self, positions_world: np.ndarray, t_s: float) -> None:
+        """Called by the tracer after it moved animated objects: updates the moving vertices' attributes."""
+        if self._tables is not None:
+            self._tables.update(positions_world, t_s)
+
+    # ------------------------------------------------------------------------------------------ numerics
+    def ulp32(self, x64):
+        """``np.spacing(np.float32(x))`` as float64 for x >= 0 (0 below the normal range, where the callers' absolute
+        floors take over)."""
+        dr = self.dr
+        bits = dr.reinterpret_array(self.UInt32, self.Float(x64)) & 0x7F800000
+        return self.Float64(dr.reinterpret_array(self.Float, bits)) * TWO_M23
+
+    def local_f32(self, p64):
+        """float64 world points → float32 tracing-frame points (minus ``tracer.shift``), rounded once."""
+        s = self._shift
+        return self.Point3f(self.Float(p64.x - s[0]), self.Float(p64.y - s[1]), self.Float(p64.z - s[2]))
+
+    def offset_origin(self, p64, n64):
+        """:func:`suite.core.trace.robust.offset_ray_origin` on the device, operation for operation (float64 world
+        points and unit normals; returns float64 world points)."""
+        dr, s = self.dr, self._shift
+        m = dr.maximum(dr.maximum(dr.abs(p64.x - s[0]), dr.abs(p64.y - s[1])), dr.abs(p64.z - s[2]))
+        step = dr.maximum(OFFSET_ULPS * self.ulp32(m), FLOAT_SCALE)
+        return self.Point3d(p64.x + step * n64.x, p64.y + step * n64.y, p64.z + step * n64.z)
+
+    # ------------------------------------------------------------------------------------------ queries
+    def ray(self, o_local, d, length):
+        ray = self.m.Ray3f(o_local, d)
+        ray.maxt = length
+        return ray
+
+    def global_prim(self, pi, valid):
+        """Global face index of preliminary intersections (-1 on a miss)."""
+        dr, t = self.dr, self.tracer
+        if t._identity_prims:
+            prim = self.Int32(pi.prim_index)
+        else:
+            slot = dr.reinterpret_array(self.UInt32, pi.shape)  # the shape's registry id, on every variant
+            first = dr.gather(self.UInt32, t._first_face_by_id, slot, valid)
+            prim = dr.gather(self.Int32, t._face_table, first + pi.prim_index, valid)
+        return dr.select(valid, prim, -1)
+
+    def closest_backend(self, o_local, d, length, active=True):
+        """One backend closest-hit query: (t, prim, u, v) with misses normalised (inf, -1, 0, 0)."""
+        dr = self.dr
+        pi = self.tracer.query_scene.ray_intersect_preliminary(self.ray(o_local, d, length), coherent=False,
+                                                               active=active)
+        valid = pi.is_valid() & active
+        t = dr.select(valid, pi.t, dr.inf)
+        u = dr.select(valid, pi.prim_uv.x, 0.0)
+        v = dr.select(valid, pi.prim_uv.y, 0.0)
+        return t, self.global_prim(pi, valid), u, v
+
+    def closest(self, o_local, d, length, active=True):
+        """Closest opaque hit of tracing-frame rays: ``(t, prim, u, v, traced)``, lazily. ``traced`` counts the backend
+        queries per lane (1, plus one per transparent layer re-traced) or is None when nothing can be re-traced."""
+        t, prim, u, v = self.closest_backend(o_local, d, length, active)
+        if self.tracer._alpha is None:
+            return t, prim, u, v, None
+        return self._skip_transparent(o_local, d, length, t, prim, u, v, active)
+
+    def _skip_transparent(self, o_local, d, length, t, prim, u, v, active):
+        """:meth:`suite.core.trace.base.Tracer._skip_transparent` on the device, in the same float64 steps.
+
+        The loop runs for lanes whose hit lies on an alpha-tested face (``pending``, one table lookup); its body first
+        looks up the opacity there, so the texture work is done only in the (rare) packets that hit such a face, not
+        masked in every packet. ``layers`` counts re-traces, as the host loop's iterations do."""
+        dr, F, F64, U = self.dr, self.Float, self.Float64, self.UInt32
+        tables = self.tables
+        pending = tables.tested_face(prim, active)
+        traced = dr.select(active, U(1), U(0))
+        layers = dr.zeros(U, dr.width(t))
+        o64 = self.Point3d(o_local)
+        d64 = self.Vector3d(d)
+        length64 = F64(length)
+
+        def cond(t, prim, u, v, pending, layers, traced):
+            return pending & (layers < MAX_ALPHA_LAYERS)
+
+        def body(t, prim, u, v, pending, layers, traced):
+            todo = tables.transparent(prim, u, v, pending)  # an opaque hit ends the lane's walk
+            t64 = F64(t)
+            p = dr.maximum(dr.maximum(dr.abs(o64.x + d64.x * t64), dr.abs(o64.y + d64.y * t64)),
+                           dr.abs(o64.z + d64.z * t64))
+            scale = dr.maximum(p, dr.abs(t64))
+            start = t64 + dr.maximum(ALPHA_STEP_ULPS * self.ulp32(scale), FLOAT_SCALE)
+            remaining = length64 - start
+            gone = todo & (remaining <= 0.0)
+            go = todo & ~gone
+            o_next = self.Point3f(F(o64.x + d64.x * start), F(o64.y + d64.y * start), F(o64.z + d64.z * start))
+            t2, p2, u2, v2 = self.closest_backend(o_next, d, F(remaining), go)
+            t = dr.select(go, dr.select(p2 >= 0, F(start + F64(t2)), dr.inf), dr.select(gone, dr.inf, t))
+            prim = dr.select(go, p2, dr.select(gone, -1, prim))
+            u = dr.select(go, u2, dr.select(gone, 0.0, u))
+            v = dr.select(go, v2, dr.select(gone, 0.0, v))
+            traced = traced + dr.select(go, U(1), U(0))
+            layers = layers + dr.select(go, U(1), U(0))
+            pending = go & tables.tested_face(p2, go)
+            return t, prim, u, v, pending, layers, traced
+
+        t, prim, u, v, pending, layers, traced = dr.while_loop((t, prim, u, v, pending, layers, traced), cond, body)
+        return t, prim, u, v, traced
+
+    def occluded_rays(self, o_local, d, length, active=True):
+        """Shadow-ray query of tracing-frame rays: ``(blocked, closest_traced)``, lazily. With alpha-tested materials a
+        ray the backend finds blocked is walked past its transparent hits (:meth:`closest`) and is blocked only if an
+        opaque hit remains; ``closest_traced`` counts those closest-hit queries per lane (None without alpha)."""
+        blocked = self.tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
+        if self.tracer._alpha is None:
+            return blocked, None
+        _, prim, _, _, traced = self.closest(o_local, d, length, blocked)
+        return blocked & (prim >= 0), traced
+
+    # ------------------------------------------------------------------------------------------ public, evaluated
+    def _rays_in_frame(self, o, d, tmin, tmax):
+        """World origins (Point3d or Point3f), unit directions and tmin/tmax (scalars or arrays) → tracing-frame
+        float32 origins advanced by tmin, and lengths clipped to [0, MAX_RAY_LENGTH] (the numpy path's rules)."""
+        dr, F = self.dr, self.Float
+        o64 = self.Point3d(o)
+        d = self.Vector3f(d)
+        tmin_is_zero = isinstance(tmin, (int, float)) and tmin == 0.0
+        o_local = self.local_f32(o64)
+        if not tmin_is_zero:
+            tmin_f = F(tmin)
+            o_local = o_local + d * tmin_f
+        else:
+            tmin_f = F(0.0)
+        if isinstance(tmax, (int, float)):
+            if np.isinf(tmax) and tmin_is_zero:
+                length = dr.full(F, float(MAX_RAY_LENGTH), dr.width(d))
+            else:
+                length = dr.clip(F(min(float(tmax), 3.0e38)) - tmin_f, 0.0, float(MAX_RAY_LENGTH))
+        else:
+            length = dr.clip(F(tmax) - tmin_f, 0.0, float(MAX_RAY_LENGTH))
+        return o_local, d, length, tmin_f, tmin_is_zero
+
+    def occluded(self, o, d, tmin=0.0, tmax=np.inf):
+        """Device-resident ``occluded``: world-space Dr.Jit rays in, evaluated Dr.Jit Bool out (counted)."""
+        o_local, d, length, _, _ = self._rays_in_frame(o, d, tmin, tmax)
+        blocked, traced = self.occluded_rays(o_local, d, length)
+        n = self.dr.width(d)
+        self.eval(blocked) if traced is None else self.eval(blocked, traced)
+        self.tracer.counters["rays_occluded"] += n
+        if traced is not None:
+            self.tracer.counters["rays_intersect"] += self.sum_u32(traced)
+        return blocked
+
+    def intersect(self, o, d, tmin=0.0, tmax=np.inf):
+        """Device-resident ``intersect``: world-space Dr.Jit rays in, evaluated ``DeviceHits`` out (counted)."""
+        dr = self.dr
+        o_local, d, length, tmin_f, tmin_is_zero = self._rays_in_frame(o, d, tmin, tmax)
+        t, prim, u, v, traced = self.closest(o_local, d, length)
+        if not tmin_is_zero:
+            t = t + tmin_f
+        self.eval(t, prim, u, v) if traced is None else self.eval(t, prim, u, v, traced)
+        n = dr.width(d)
+        self.tracer.counters["rays_intersect"] += n if traced is None else self.sum_u32(traced)
+        return DeviceHits(t, prim, u, v)
+
+    def sum_u32(self, counts) -> int:
+        """Sum of a per-lane UInt32 counter (a reduction; a few bytes come back to the host)."""
+        dr = self.dr
+        return int(dr.sum(self.Float64(counts))[0]) if dr.width(counts) else 0
+
+    # raw backend entry points on device-resident rays (the benchmarks' baseline)
+    def raw_ray(self, o_local, d, length):
+        ray = self.ray(self.Point3f(o_local), self.Vector3f(d), self.Float(length))
+        self.dr.eval(ray)
+        return ray
+
+    def raw_occluded(self, ray):
+        out = self.tracer.mscene.ray_test(ray, coherent=False)
+        self.eval(out)
+        return out
+
+    def raw_intersect(self, ray):
+        pi = self.tracer.mscene.ray_intersect_preliminary(ray, coherent=False)
+        self.eval(pi.t, pi.prim_index, pi.prim_uv, pi.shape)
+        return pi
+
+
+@dataclass
+class DeviceHits:
+    t: object  # Float, inf on miss
+    prim: object  # Int32, -1 on miss
+    u: object  # Float
+    v: object  # Float
+
+
+class SceneTables:
+    """The scene's per-vertex, per-face and per-material data on the device, as the G-buffer and the alpha test read
+    them: world vertex positions and shading normals at the tracer's time (float32, moving vertices updated on
+    ``tracer.update``), UVs, faces, per-face material and object, per-material albedo, emission, kind code, albedo
+    and opacity textures (flat, Mitsuba's bitmap layout), alpha thresholds."""
+
+    def __init__(self, device: Device):
+        from suite.core.scene.model import KIND_CODES
+
+        dev = self.dev = device
+        scene = device.scene
+        F, U, I = dev.Float, dev.UInt32, dev.Int32
+        t_s = device.tracer._time_s
+        positions = scene.positions_at(t_s)
+        normals = scene.normals_at(t_s)
+        self.vpos = dev.to_device(np.ascontiguousarray(positions, np.float32).reshape(-1), F)
+        self.vnrm = dev.to_device(np.ascontiguousarray(normals, np.float32).reshape(-1), F)
+        self.vuv = dev.to_device(np.ascontiguousarray(scene.uvs, np.float32).reshape(-1), F)
+        self.faces = dev.to_device(np.ascontiguousarray(scene.faces, np.uint32).reshape(-1), U)
+        self.face_material = dev.to_device(np.ascontiguousarray(scene.face_material, np.int32), I)
+        self.face_object = dev.to_device(np.ascontiguousarray(scene.face_object, np.int32), I)
+        mats = scene.materials
+        self.albedo = dev.to_device(np.stack([m.albedo for m in mats]).astype(np.float32).reshape(-1), F)
+        self.emission = dev.to_device(np.stack([m.emission for m in mats]).astype(np.float32).reshape(-1), F)
+        self.kind = dev.to_device(np.array([KIND_CODES[m.shading_kind] for m in mats], np.int32), I)
+        self.any_emissive = any(m.is_emissive for m in mats)
+        self.albedo_tex = _TextureTable(dev, [m.albedo_texture for m in mats], 3)
+        self.opacity_tex = _TextureTable(dev, [m.opacity_texture if m.is_alpha_tested else None for m in mats], 1)
+        self.threshold = dev.to_device(np.array([m.alpha_threshold if m.is_alpha_tested else 0.0 for m in mats],
+                                                np.float32), F)
+        tested = np.array([m.is_alpha_tested for m in mats], np.uint32)
+        self.face_tested = dev.to_device(tested[scene.face_material], U) if tested.any() else None
+        # Vertices of animated objects (their rows are re-uploaded on update).
+        moving = {a.object_id for a in scene.object_animations}
+        if moving:
+            dyn_faces = np.isin(scene.face_object, list(moving))
+            self.dynamic_vertices = np.unique(scene.faces[dyn_faces].reshape(-1)).astype(np.uint32)
+        else:
+            self.dynamic_vertices = np.zeros(0, np.uint32)
+        self._dyn_index = None
+        self.time_s = t_s
+        dev.dr.eval(self.vpos, self.vnrm, self.vuv, self.faces, self.face_material, self.face_object)
+
+    def update(self, positions_world: np.ndarray, t_s: float) -> None:
+        """Moves the animated vertices to their positions (and normals) at ``t_s``."""
+        if len(self.dynamic_vertices) == 0:
+            return
+        dev, dr = self.dev, self.dev.dr
+        rows = self.dynamic_vertices
+        if self._dyn_index is None:
+            idx = (rows[:, None].astype(np.uint32) * 3 + np.arange(3, dtype=np.uint32)).reshape(-1)
+            self._dyn_index = dev.to_device(idx, dev.UInt32)
+        normals = dev.scene.normals_at(t_s)
+        p = dev.to_device(np.ascontiguousarray(positions_world[rows], np.float32).reshape(-1), dev.Float)
+        n = dev.to_device(np.ascontiguousarray(normals[rows], np.float32).reshape(-1), dev.Float)
+        dr.scatter(self.vpos, p, self._dyn_index)
+        dr.scatter(self.vnrm, n, self._dyn_index)
+        dr.eval(self.vpos, self.vnrm)
+        self.time_s = t_s
+
+    # ---------------------------------------------------------------------------------------------- lookups
+    def triangle(self, prim, active):
+        """Vertex indices (3 UInt32) of faces ``prim``."""
+        dr, U = self.dev.dr, self.dev.UInt32
+        base = U(dr.maximum(prim, 0)) * 3
+        return [dr.gather(U, self.faces, base + k, active) for k in range(3)]
+
+    def vertex3(self, table, vid, active, dtype=None):
+        dev = self.dev
+        p = self.dev.dr.gather(dev.Vector3f, table, vid, active)
+        return dev.Vector3d(p) if dtype == "f64" else p
+
+    def uv_f64(self, vids, w, active):
+        """Interpolated float64 texture coordinates ``(uv0 w0 + uv1 w1) + uv2 w2`` (numpy's order)."""
+        dev = self.dev
+        uv = [dev.dr.gather(dev.Point2f, self.vuv, vid, active) for vid in vids]
+        x = (dev.Float64(uv[0].x) * w[0] + dev.Float64(uv[1].x) * w[1]) + dev.Float64(uv[2].x) * w[2]
+        y = (dev.Float64(uv[0].y) * w[0] + dev.Float64(uv[1].y) * w[1]) + dev.Float64(uv[2].y) * w[2]
+        return x, y
+
+    def tested_face(self, prim, active):
+        """Bool: the hit lies on a face whose material is alpha-tested (one gather of a per-face flag)."""
+        dev, dr = self.dev, self.dev.dr
+        hit = active & (prim >= 0)
+        return hit & (dr.gather(dev.UInt32, self.face_tested, dr.maximum(prim, 0), hit) != 0)
+
+    def transparent(self, prim, u, v, active):
+        """Bool: the hit lies where its material's opacity is below its threshold (:meth:`AlphaTest.transparent`)."""
+        dev, dr = self.dev, self.dev.dr
+        hit = active & (prim >= 0)
+        mat = dr.gather(dev.Int32, self.face_material, dr.maximum(prim, 0), hit)
+        tested = hit & self.opacity_tex.has(mat, hit)
+        F64 = dev.Float64
+        u64, v64 = F64(u), F64(v)
+        w = (1.0 - u64 - v64, u64, v64)  # float64, as AlphaTest.opacity computes it
+        uvx, uvy = self.uv_f64(self.triangle(prim, tested), w, tested)
+        opacity = self.opacity_tex.lookup(mat, uvx, uvy, tested)[0]
+        threshold = dr.gather(dev.Float, self.threshold, mat, tested)
+        return tested & (opacity < threshold)
+
+
+class _TextureTable:
+    """Per-material textures in one flat float32 array: offset, width, height per material (width 0: none). Lookups
+    are :func:`suite.core.gbuffer.lookup_texture` (bilinear, repeating, texel centres at +0.5, row 0 at v = 0)
+    operation for operation in float64."""
+
+    def __init__(self, dev: Device, textures, channels: int):
+        self.dev, self.channels = dev, channels
+        offsets, widths, heights, chunks, at = [], [], [], [], 0
+        for tex in textures:
+            if tex is None:
+                offsets.append(0), widths.append(0), heights.append(0)
+                continue
+            tex = np.ascontiguousarray(tex, np.float32).reshape(tex.shape[0], tex.shape[1], -1)[:, :, :channels]
+            offsets.append(at), widths.append(tex.shape[1]), heights.append(tex.shape[0])
+            chunks.append(tex.reshape(-1))
+            at += tex.size
+        self.any = bool(chunks)
+        self.offset = dev.to_device(np.array(offsets, np.uint32), dev.UInt32)
+        self.width = dev.to_device(np.array(widths, np.int32), dev.Int32)
+        self.height = dev.to_device(np.array(heights, np.int32), dev.Int32)
+        self.data = dev.to_device(np.concatenate(chunks) if chunks else np.zeros(1, np.float32), dev.Float)
+
+    def has(self, mat, active):
+        if not self.any:
+            return self.dev.Bool(False)
+        return self.dev.dr.gather(self.dev.Int32, self.width, mat, active) > 0
+
+    def lookup(self, mat, uvx, uvy, active):
+        """``channels`` Float64 values at float64 UVs (for materials with a texture; garbage-free zeros elsewhere)."""
+        dev, dr = self.dev, self.dev.dr
+        F64, I, U = dev.Float64, dev.Int32, dev.UInt32
+        w_i = dr.gather(I, self.width, mat, active)
+        h_i = dr.gather(I, self.height, mat, active)
+        active = active & (w_i > 0)
+        off = dr.gather(U, self.offset, mat, active)
+        w, h = F64(w_i), F64(h_i)
+        x = uvx * w - 0.5
+        y = uvy * h - 0.5
+        x0, y0 = dr.floor(x), dr.floor(y)
+        fx, fy = x - x0, y - y0
+        # Python's modulo (non-negative) of the integer texel coordinates, exact in float64.
+        x0m = x0 - w * dr.floor(x0 / w)
+        y0m = y0 - h * dr.floor(y0 / h)
+        x0i = dr.clip(I(x0m), 0, w_i - 1)
+        y0i = dr.clip(I(y0m), 0, h_i - 1)
+        x1i = dr.select(x0i + 1 >= w_i, 0, x0i + 1)
+        y1i = dr.select(y0i + 1 >= h_i, 0, y0i + 1)
+        c = self.channels
+        wu = U(w_i)
+
+        def texel(yi, xi, k):
+            return F64(dr.gather(dev.Float, self.data, off + (U(yi) * wu + U(xi)) * c + k, active))
+
+        a00, a10 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
+        a01, a11 = (1.0 - fx) * fy, fx * fy
+        out = []
+        for k in range(c):
+            val = ((a00 * texel(y0i, x0i, k) + a10 * texel(y0i, x1i, k)) + a01 * texel(y1i, x0i, k)) \
+                + a11 * texel(y1i, x1i, k)
+            out.append(dr.select(active, val, 0.0))
+        return out
