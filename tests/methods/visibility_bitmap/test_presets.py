@@ -25,7 +25,10 @@ def test01_quick_preset_has_the_figure10_claim_network_codec_and_resolution_runs
     assert {"640x360", "1280x720", "1920x1080"} <= {r for v, r, n, p in points if v == "paper"}
     # 1080p runs skip the path-traced references (minutes each on 2 cores)
     assert all(c["reference_spp"] == 0 for c in configs if c["resolution"] == [1920, 1080])
-    assert len(points) == len(set(points))
+    runs = [(c["scene"], *p) for c, p in zip(configs, points)]
+    assert len(runs) == len(set(runs))
+    # a real level with more lights than a 32-bit word, in the multi-word layouts
+    assert {c["params"]["layout"] for c in configs if c["scene"] == "oa:aggressor@pak1-maps"} == {"words32", "packed8"}
 
 
 def test02_smoke_preset_stays_tiny():
