@@ -25,6 +25,12 @@ Every key is canonical: it depends on times, flow ids and per-flow counters only
 messages were submitted. Results therefore depend only on the messages' send times (and the seed), and an
 engine copied at any point (:meth:`Engine.clone`) and run on gives the same results as one that never stopped.
 
+A copy is copy-on-write: the two engines share every flow and link, and either one copies a flow or a link only
+when it is about to change it (the first event of that flow, the first packet offered to that link). So a
+checkpoint's copy costs what the simulation after it touches, not what the topology holds: the idle clients' flows
+and access links are never copied. Flows reach their links through the engine (a path holds link numbers), so a
+flow sees its own engine's links whoever copied them.
+
 TCP follows :mod:`netsim.tcp` rule for rule (same :class:`~netsim.tcp._CongestionState`, SACK scoreboard,
 PRR, RTO, slow-start restart; tests/netsim/test_topology.py checks that one flow over one link gives the
 single-path engine's results). Two differences, both where the single-path engine approximates: data written
@@ -35,7 +41,6 @@ last byte arrived are not counted, so that a later send can never change a settl
 
 from __future__ import annotations
 
-import copy
 import heapq
 import math
 from bisect import bisect_right
@@ -71,10 +76,15 @@ class Path:
     ``merges[k]``: link k is fed by other links besides ``hops[k - 1]`` (packets reach it through HOP events).
     ACKs are not simulated packet by packet: like the single-path engine they take the reverse links' delays and
     serialisation of 40 bytes, are never lost and never queue (docs/netsim.md, "TCP model").
+
+    A path holds only constants. The :class:`Engine` it is given to binds it (:meth:`bind`): ``hop_ids`` are then
+    the numbers of its links in ``engine.links``, where the engine keeps the current object of each link (a copy
+    after copy-on-write), and the Link objects themselves are dropped so that nothing can reach a stale one.
     """
 
     def __init__(self, hops: list[Link], merges: list[bool], reverse: list[Link]):
         self.hops = hops
+        self.hop_ids: list[int] | None = None
         self.merges = merges
         # A link is offered immediately unless several links feed it, or the previous one may reorder packets
         # (then its output is not in time order).
@@ -86,35 +96,51 @@ class Path:
         self.reverse_delay_s = sum(r.delay_s for r in reverse)
         self.rate_bytes_per_s = min((h.rate_bytes_per_s for h in hops), default=INF)
         self.mtu_bytes = min((h.config.mtu_bytes for h in hops), default=1500)
+        self.hop_rates = [h.rate_bytes_per_s for h in hops]
+
+    def bind(self, numbers: dict) -> None:
+        """Refer to the links by their numbers in the engine (``numbers``: id of a link -> its number). A path
+        belongs to one engine (and to the copies of that engine)."""
+        if self.hop_ids is not None:
+            raise ValueError("this path is bound to another engine already")
+        self.hop_ids = [numbers[id(h)] for h in self.hops]
+        self.hops = self.reverse = None
 
     def serialisation_s(self, wire_bytes: int) -> float:
-        return sum(wire_bytes / h.rate_bytes_per_s for h in self.hops)
-
-    def remap(self, link_map: dict) -> "Path":
-        """This path over the copies of its links (``link_map``: id of a link -> its copy). Memoised in
-        ``link_map`` too, so that the flows sharing a path share its copy."""
-        other = link_map.get(id(self))
-        if other is None:
-            other = object.__new__(Path)
-            other.__dict__.update(self.__dict__)
-            other.hops = [link_map[id(h)] for h in self.hops]
-            other.reverse = [link_map[id(r)] for r in self.reverse]
-            link_map[id(self)] = other
-        return other
+        return sum(wire_bytes / rate for rate in self.hop_rates)
 
 
 class Engine:
-    """Links, flows and the event heap. ``run()`` processes events; ``clone()`` is an independent copy."""
+    """Links, flows and the event heap. ``run()`` processes events; ``clone()`` is an independent copy.
+
+    ``links[k]`` and ``flows[fid]`` are the current objects; an object whose ``_owner`` is not this engine's
+    ``owner`` may be shared with a copy of the engine and is copied before it changes (copy-on-write; counted in
+    ``flows_copied`` and ``links_copied``).
+    """
 
     def __init__(self, links: list[Link], flows: list, salt: int = 0):
-        self.links = links
-        self.flows = flows
+        self.links = list(links)
+        self.flows = list(flows)
         self.salt = salt & _MASK64  # from the seed: the tie-break order of simultaneous events
         self.heap: list = []
         self.now = -INF
         self.last_event = (-INF,)   # the last event processed: a message may join only after it
         self.ident = object()       # stamped on the messages this engine finalises
         self.finalized: list[Message] = []
+        self.owner = object()       # stamped on the links and flows this engine alone holds
+        self.flows_copied = 0
+        self.links_copied = 0
+        numbers = {id(link): k for k, link in enumerate(self.links)}
+        bound: set = set()
+        for link in self.links:
+            link._owner = self.owner
+        for fid, flow in enumerate(self.flows):
+            if flow.fid != fid:
+                raise ValueError(f"flow {flow.fid} at position {fid}: flows must be listed in the order of their ids")
+            flow._owner = self.owner
+            if id(flow.path) not in bound:  # flows of one (client, direction) share their path
+                flow.path.bind(numbers)
+                bound.add(id(flow.path))
 
     # -- input ---------------------------------------------------------------------------------------------------
     def add_message(self, fid: int, index: int, message: Message) -> None:
@@ -129,11 +155,17 @@ class Engine:
     def transmit(self, flow, t: float, wire_bytes: int, payload, keep_order: bool, hop: int = 0) -> None:
         """Offer a packet to ``flow``'s path at link ``hop`` at time ``t``; the flow's ``deliver`` learns its
         arrival time at the far end, or None with the time it was dropped."""
-        hops = flow.path.hops
-        immediate = flow.path.immediate
-        last = len(hops) - 1
+        path = flow.path
+        hop_ids = path.hop_ids
+        immediate = path.immediate
+        links = self.links
+        owner = self.owner
+        last = len(hop_ids) - 1
         while True:
-            arrival = hops[hop].transmit(t, wire_bytes, None, keep_order)
+            link = links[hop_ids[hop]]
+            if link._owner is not owner:
+                link = self._own_link(hop_ids[hop])
+            arrival = link.transmit(t, wire_bytes, None, keep_order)
             if arrival is None:
                 flow.deliver(self, payload, None, t)
                 return
@@ -156,6 +188,7 @@ class Engine:
         flows = self.flows
         pop = heapq.heappop
         ident = self.ident
+        owner = self.owner
         while heap:
             event = heap[0]
             t = event[0]
@@ -165,10 +198,16 @@ class Engine:
             self.now = t
             self.last_event = event
             kind = event[1]
-            flow = flows[event[3]]
+            fid = event[3]
+            flow = flows[fid]
             if kind == WAKE:
                 if event[4] != flow.token:
                     continue  # superseded by a later schedule()
+            elif kind == FINAL and event[4] not in flow.states:
+                continue  # already finalised (on_final would do nothing)
+            if flow._owner is not owner:
+                flow = self._own_flow(fid)
+            if kind == WAKE:
                 flow.wake_s = INF
                 flow.on_wake(self, t)
                 flow.schedule(self)
@@ -189,17 +228,36 @@ class Engine:
         self.finalized.append(message)
 
     def clone(self) -> "Engine":
+        """An independent copy. It copies the event heap and two lists of references, nothing else: from here on
+        both engines share every link and flow, and either copies one just before it changes it (neither owns
+        them any more), so the cost of a copy follows what is simulated after it, not the number of flows."""
         other = Engine.__new__(Engine)
-        link_map = {id(link): link.copy() for link in self.links}
-        other.links = [link_map[id(link)] for link in self.links]
-        other.flows = [flow.clone(link_map) for flow in self.flows]
+        other.links = list(self.links)
+        other.flows = list(self.flows)
         other.heap = list(self.heap)  # events are immutable tuples (messages are only read)
         other.salt = self.salt
         other.now = self.now
         other.last_event = self.last_event
         other.ident = object()
         other.finalized = []
+        other.owner = object()
+        other.flows_copied = other.links_copied = 0
+        self.owner = object()  # what this engine held is shared now: it copies before writing too
         return other
+
+    def _own_flow(self, fid: int):
+        flow = self.flows[fid].clone()
+        flow._owner = self.owner
+        self.flows[fid] = flow
+        self.flows_copied += 1
+        return flow
+
+    def _own_link(self, number: int) -> Link:
+        link = self.links[number].copy()
+        link._owner = self.owner
+        self.links[number] = link
+        self.links_copied += 1
+        return link
 
 
 class _Flow:
@@ -213,6 +271,7 @@ class _Flow:
         self.token = 0          # number of the valid WAKE entry
         self.packet_number = 0  # numbers this flow's HOP events
         self.states: dict = {}  # message number -> per-message state, until the message is finalised
+        self._owner = None      # the Engine.owner of the engine that may change this flow in place (copy-on-write)
 
     def schedule(self, engine: Engine) -> None:
         t = self.next_event_s()
@@ -221,14 +280,6 @@ class _Flow:
             self.token += 1
             if t < INF:
                 heapq.heappush(engine.heap, (t, WAKE, tiebreak(engine.salt, t, self.fid), self.fid, self.token, None))
-
-    def _clone_base(self, link_map: dict):
-        other = object.__new__(type(self))
-        other.__dict__.update(self.__dict__)
-        other.path = self.path.remap(link_map)
-        state_map = {id(s): s.copy() for s in self._all_states()}
-        other.states = {index: state_map[id(s)] for index, s in self.states.items()}
-        return other, state_map
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -252,8 +303,13 @@ class _TcpMessage:
 
     def copy(self) -> "_TcpMessage":
         other = _TcpMessage.__new__(_TcpMessage)
-        for name in _TcpMessage.__slots__:
-            setattr(other, name, getattr(self, name))
+        other.message = self.message
+        other.index = self.index
+        other.start = self.start
+        other.end = self.end
+        other.done_s = self.done_s
+        other.retransmissions = self.retransmissions
+        other.deadline_abs_s = self.deadline_abs_s
         return other
 
 
@@ -332,22 +388,39 @@ class TcpFlow(_Flow):
         self.recover_fs = 1
         self.cap_s = INF
 
-    def _all_states(self):
-        seen = {id(s): s for s in self.pmsgs}
-        for s in self.states.values():
-            seen[id(s)] = s
-        return seen.values()
-
-    def clone(self, link_map: dict) -> "TcpFlow":
-        other, state_map = self._clone_base(link_map)
+    def clone(self) -> "TcpFlow":
+        """An independent copy (the engine's copy-on-write). Between busy periods the period's containers and
+        message states are only read (a new period replaces them), so an idle flow's copy shares them."""
+        other = object.__new__(TcpFlow)
+        other.__dict__.update(self.__dict__)
         other.cc = self.cc.copy()
-        other.pmsgs = [state_map[id(s)] for s in self.pmsgs]
-        for name in ("pmsg_end", "seg_bytes", "seg_msg", "send_time", "retx_episode", "advances", "advance_times"):
-            setattr(other, name, list(getattr(self, name)))
-        for name in ("retransmitted", "received", "sacked"):
-            setattr(other, name, bytearray(getattr(self, name)))
-        other.ackq = deque(self.ackq)
-        other.retx_out = deque(self.retx_out)
+        if not self.active:
+            other.states = dict(self.states)
+            return other
+        copies = {}
+        pmsgs = []
+        for state in self.pmsgs:
+            twin = state.copy()
+            copies[id(state)] = twin
+            pmsgs.append(twin)
+        other.pmsgs = pmsgs
+        states = {}
+        for index, state in self.states.items():
+            twin = copies.get(id(state))
+            states[index] = twin if twin is not None else state.copy()  # an earlier period's, awaiting FINAL
+        other.states = states
+        other.pmsg_end = self.pmsg_end[:]
+        other.seg_bytes = self.seg_bytes[:]
+        other.seg_msg = self.seg_msg[:]
+        other.send_time = self.send_time[:]
+        other.retx_episode = self.retx_episode[:]
+        other.advances = self.advances[:]
+        other.advance_times = self.advance_times[:]
+        other.retransmitted = self.retransmitted[:]
+        other.received = self.received[:]
+        other.sacked = self.sacked[:]
+        other.ackq = self.ackq.copy()
+        other.retx_out = self.retx_out.copy()
         return other
 
     # -- events --------------------------------------------------------------------------------------------------
@@ -368,7 +441,7 @@ class TcpFlow(_Flow):
         return t if t <= self.cap_s else self.cap_s
 
     def on_message(self, engine: Engine, t: float, index: int, message: Message) -> None:
-        if not self.path.hops:  # an ideal path: delivered at once, as Network does for the ideal profile
+        if not self.path.hop_ids:  # an ideal path: delivered at once, as Network does for the ideal profile
             _finish(engine, message, arrival_s=t, delivered=message.size_bytes, lost=[], retransmissions=0)
             return
         mss = self.mss
@@ -856,7 +929,8 @@ class _UdpMessage:
         self.result = None
 
     def copy(self) -> "_UdpMessage":
-        other = copy.copy(self)
+        other = object.__new__(_UdpMessage)
+        other.__dict__.update(self.__dict__)
         other.data_arrival = list(self.data_arrival)
         other.pass_arrival = list(self.pass_arrival)
         return other
@@ -889,13 +963,13 @@ class UdpFlow(_Flow):
         self.retransmissions = 0
         self.datagrams_recovered = 0
 
-    def _all_states(self):
-        return self.states.values()
-
-    def clone(self, link_map: dict) -> "UdpFlow":
-        other, _ = self._clone_base(link_map)
-        other.queue = deque(self.queue)
-        other.resend = list(self.resend)
+    def clone(self) -> "UdpFlow":
+        """An independent copy (the engine's copy-on-write)."""
+        other = object.__new__(UdpFlow)
+        other.__dict__.update(self.__dict__)
+        other.states = {index: state.copy() for index, state in self.states.items()}
+        other.queue = self.queue.copy()
+        other.resend = self.resend[:]
         return other
 
     def next_event_s(self) -> float:
@@ -908,7 +982,7 @@ class UdpFlow(_Flow):
         return ready if ready >= self.next_free_s else self.next_free_s
 
     def on_message(self, engine: Engine, t: float, index: int, message: Message) -> None:
-        if not self.path.hops:
+        if not self.path.hop_ids:
             _finish(engine, message, arrival_s=t, delivered=message.size_bytes, lost=[], retransmissions=0)
             return
         state = _UdpMessage(message, index, self.payload, self.config)

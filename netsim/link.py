@@ -43,7 +43,8 @@ class RandomStream:
     """Uniform(0,1) numbers from a seeded generator, served one by one from numpy blocks.
 
     Copies share the generator until one of them needs a new block (copy on write): the topology engine copies
-    every link at each checkpoint, and most links (no loss, no jitter) never draw at all.
+    a link whenever a checkpoint's copy first offers it a packet, and most links (no loss, no jitter) never draw
+    at all.
     """
 
     def __init__(self, rng: np.random.Generator):
@@ -134,6 +135,7 @@ class Link:
         self.ge_bad = False          # Gilbert-Elliott state
         self._trace_bytes_served = 0  # bytes through the trace's opportunities so far
         self.last_user: object = None  # which flow offered the last packet (transports use it to share the link)
+        self._owner: object = None     # the topology engine that may change this link in place (copy-on-write)
         # Packets to lose on purpose, by offer number (0 = the first packet offered): scripted experiments and
         # tests that need a loss at an exact place. They add to the random loss.
         self.scripted_losses: set[int] = set()

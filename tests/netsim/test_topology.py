@@ -366,3 +366,116 @@ def test_a_later_send_on_the_same_connection_does_not_move_an_arrived_message():
             before = _record(first)
             net.send(1_000_000, at_s=first.arrival_s + 1e-6)  # joins the busy period (the last ACK is not back)
             assert _record(first) == before
+
+
+# -- cost: copy-on-write checkpoints ------------------------------------------------------------------------------
+def _count_copies(monkeypatch):
+    """Count engine copies and the flow and link copies that copy-on-write makes."""
+    from netsim import engine as engine_module
+
+    counts = {"engines": 0, "flows": 0, "links": 0}
+
+    def counting(cls, name, key):
+        original = getattr(cls, name)
+
+        def wrapper(self, *args, **kwargs):
+            counts[key] += 1
+            return original(self, *args, **kwargs)
+        monkeypatch.setattr(cls, name, wrapper)
+
+    counting(engine_module.Engine, "clone", "engines")
+    counting(engine_module.TcpFlow, "clone", "flows")
+    counting(engine_module.UdpFlow, "clone", "flows")
+    counting(link_module.Link, "copy", "links")
+    return counts
+
+
+def _busy_few_clients(clients):
+    """Clients 0-3 of ``clients`` exchange messages frame after frame from 1 s on, reading results between sends
+    (each read after a send that lands in simulated time copies the checkpoint); the others received one message
+    each at 0 s and are idle since. The server link is lossless and drained by 1 s, so they leave no trace."""
+    topo = netsim.make_topology(access=SPEC_ACCESS, server="bw=30mbps,delay=8ms,queue=150p", clients=clients,
+                                seed=5)
+    records = []
+    for i in range(4, clients):
+        topo.send(20_000, client=i, direction=("down", "up")[i % 2], protocol=("tcp", "udp")[i % 3 == 0], at_s=0.0)
+    topo.advance(1.0)  # the checkpoint: every flow of clients 4.. idle
+    for k in range(12):
+        t = 1.0 + 0.02 * k
+        down = topo.send(60_000, client=k % 4, direction="down", protocol="tcp", at_s=t)
+        up = topo.send(8_000, client=(k + 1) % 4, direction="up", protocol="udp", at_s=t + 0.001)
+        records.append(_record(down))
+        records.append(_record(up))
+        late = topo.send(30_000, client=(k + 2) % 4, direction="down", protocol="tcp", at_s=t)  # in simulated time
+        records.append(_record(late))
+        topo.advance(t)
+    return topo, records
+
+
+def test_a_checkpoint_copy_does_not_copy_idle_flows_or_links(monkeypatch):
+    counts = _count_copies(monkeypatch)
+    _, few = _busy_few_clients(4)
+    small = dict(counts)
+    for key in counts:
+        counts[key] = 0
+    topo, many = _busy_few_clients(64)
+    # The 60 idle clients change nothing, cost nothing: the same results, the same copies.
+    assert many == few
+    assert counts == small
+    assert counts["engines"] >= 12  # the reads did copy the checkpoint, many times
+    # After a copy both engines share everything, and either copies what it changes: at most the busy clients'
+    # 16 flows and 10 links (with the server link's two) each. A full copy would take 256 flows and 130 links.
+    assert counts["flows"] <= 2 * 16 * counts["engines"] and counts["links"] <= 2 * 10 * counts["engines"]
+    # And in place: the tentative engine still shares every idle client's flows and links with the checkpoint.
+    tentative, committed = topo._current(), topo._committed
+    assert tentative is not committed
+    idle = range(8, 64)
+    assert all(tentative.flows[f] is committed.flows[f] for i in idle for f in range(4 * i, 4 * i + 4))
+    assert all(tentative.links[k] is committed.links[k] for i in idle for k in (2 + 2 * i, 3 + 2 * i))
+
+
+def _message_record(message):
+    return (message.arrival_s, message.settled_s, message.delivered_bytes, tuple(message.lost_ranges),
+            message.retransmissions, message.complete)
+
+
+def _engine_record(engine, messages):
+    links = [(link.packets_offered, link.packets_sent, link.packets_lost, link.packets_dropped_queue,
+              link.bytes_sent, link.busy_until_s, link.last_arrival_s) for link in engine.links]
+    flows = [(flow.retransmissions, getattr(flow, "timeouts", None), getattr(flow, "segments_sent", None),
+              getattr(flow, "datagrams_sent", None), flow.token) for flow in engine.flows]
+    return [_message_record(m) for m in messages], links, flows
+
+
+def test_an_engine_and_its_copies_run_on_independently_and_bit_identically():
+    # Copies share flows and links until one of them changes one; whichever runs first, and however they
+    # interleave, each gives what an engine that never stopped gives (lossy links with jitter: random streams too).
+    sends = [s for _, s in _per_pair_time_order(_random_sends(6, clients=3, count=30, horizon_s=1.0))]
+
+    def submitted():
+        topo = netsim.make_topology(access=SPEC_ACCESS, server=SPEC_SERVER, clients=3, seed=2)
+        messages = [topo.send(**s)._message for s in sends]
+        return topo._committed, messages
+
+    plain, messages = submitted()
+    plain.run()
+    want = _engine_record(plain, messages)
+
+    engine, messages = submitted()
+    engine.run(until_s=0.3)
+    first = engine.clone()
+    engine.run(until_s=0.6)        # the original moves on while its first copy waits
+    second = engine.clone()
+    third = second.clone()          # a copy of a copy
+    first.run(until_s=0.9)
+    second.run()
+    got_second = _engine_record(second, messages)
+    engine.run(until_s=0.9)
+    first.run()
+    got_first = _engine_record(first, messages)
+    engine.run()
+    got_engine = _engine_record(engine, messages)
+    third.run()
+    got_third = _engine_record(third, messages)
+    assert got_second == got_first == got_engine == got_third == want
+    assert sum(m.complete for m in messages) > 10
