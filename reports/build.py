@@ -215,6 +215,26 @@ def netsim_validation_section(out: Path, csv: Path = None) -> str:
             + "<p>Largest errors:</p>" + table_html(worst))
 
 
+SCENES_FILE = "scenes.json"
+
+
+def scenes_section(results_root: Path) -> str:
+    """The scenes the sweep could use, and those that were not available on the machine (with the fix), from
+    the ``scenes.json`` that ``splitbench reproduce`` stores beside the runs."""
+    path = results_root / SCENES_FILE
+    if not path.is_file():
+        return ""
+    import json
+
+    doc = json.loads(path.read_text())
+    rows = [{"scene": name, "available": not desc.startswith("unavailable"), "description": desc}
+            for name, desc in sorted(doc.get("scenes", {}).items())]
+    missing = [r["scene"] for r in rows if not r["available"]]
+    note = (f"Not available on the machine that ran the sweep, so not measured: {esc(', '.join(missing))}."
+            if missing else "Every listed scene was available.")
+    return "<h2>Scenes</h2><p>" + note + "</p>" + table_html(pd.DataFrame(rows))
+
+
 def build(results_root, out_dir) -> Path:
     """Writes out_dir/index.html with its PNG plots and CSV tables; returns the index path."""
     out = Path(out_dir)
@@ -265,6 +285,7 @@ def build(results_root, out_dir) -> Path:
         write_csv(machines, out / "machines.csv")
         body.append("<h2>Machine and versions</h2><p><a href='machines.csv'>machines.csv</a></p>"
                     + table_html(machines))
+    body.append(scenes_section(Path(results_root)))
     body.append(netsim_validation_section(out))
     for name, df in extra_tables():
         body.append(f"<h2>Table: {esc(name)}</h2>" + table_html(df))

@@ -451,6 +451,11 @@ def cmd_reproduce(args) -> int:
     report_dir = _check_writable_dir(args.report, "--report")
     for problem in problems:
         print(f"{PROG}: warning: {problem}", file=sys.stderr)
+    # Which scenes this machine has (the report marks those it lacks) is recorded beside the runs.
+    from suite import fileio
+
+    fileio.write_text(Path(results_dir) / "scenes.json",
+                      json.dumps({"scenes": runner_scenes()}, indent=2, sort_keys=True) + "\n")
     with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
         outcomes = executor.sweep(configs, results_dir, ex, desc=f"preset {args.preset}", force=args.force)
     from reports.build import build
@@ -469,6 +474,12 @@ def cmd_reproduce(args) -> int:
             print(f"  FAILED {o['config']['method']} {o['config']['scene']} {o['config']['net']}: {o['error']}")
         print(f"report: {index}")
     return 1 if failed or problems else 0
+
+
+def runner_scenes() -> dict:
+    from suite.core.scene import list_scenes
+
+    return dict(list_scenes())
 
 
 def cmd_report(args) -> int:

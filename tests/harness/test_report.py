@@ -117,3 +117,15 @@ def test07_one_loader_imports_a_methods_files_and_never_serves_another_folders_c
     # the project's own methods import as a package, the same module the CLI's bench hook and the builder get
     from methods.visibility_bitmap import report as vb_report
     assert registry.load_module("visibility_bitmap", "report") is vb_report
+
+
+def test_the_report_marks_scenes_that_were_not_available(tmp_path):
+    import json
+
+    from reports.build import scenes_section
+
+    (tmp_path / "scenes.json").write_text(json.dumps({"scenes": {
+        "cornell": "Mitsuba's Cornell box", "oa:kaos": "unavailable: install the OpenArena packages"}}))
+    html = scenes_section(tmp_path)
+    assert "not measured: oa:kaos" in html and "install the OpenArena packages" in html
+    assert scenes_section(tmp_path / "nowhere") == ""
