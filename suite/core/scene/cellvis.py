@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from suite.errors import UserError
+from suite.core.scene.pvs import ClusterPVS
 
 VERSION = 1
 DEFAULT_RAYS_PER_PAIR = 16
@@ -60,7 +61,7 @@ FRONT_PROBE_CELLS = 1e-3
 
 
 @dataclass
-class CellVisibility:
+class CellVisibility(ClusterPVS):
     """A cell grid with a sampled PVS (module docstring); the interface of ``Q3Visibility``."""
 
     origin: np.ndarray  # (3,) min corner of the grid
@@ -137,41 +138,6 @@ class CellVisibility:
         if c >= self.n_clusters:
             raise UserError(f"cluster {c} is out of range 0..{self.n_clusters - 1}")
         return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
-
-    def pvs_matrix(self) -> np.ndarray:
-        if self._pvs_matrix is None:
-            bits = np.unpackbits(self.pvs_rows, axis=1, bitorder="little")
-            self._pvs_matrix = bits[:, :self.n_clusters].astype(bool)
-        return self._pvs_matrix
-
-    def symmetry(self) -> dict:
-        m = self.pvs_matrix()
-        off = ~np.eye(len(m), dtype=bool)
-        visible_pairs = int((m & off).sum())
-        one_way = int(((m != m.T) & off).sum())
-        return {"clusters": int(len(m)), "visible_ordered_pairs": visible_pairs, "one_way_ordered_pairs": one_way,
-                "one_way_fraction": one_way / max(visible_pairs, 1), "diagonal_all_set": bool(np.diag(m).all())}
-
-    # --- triangles ----------------------------------------------------------------------------------
-    def clusters_of_triangle(self, i: int) -> np.ndarray:
-        a, b = self.triangle_cluster_offsets[i], self.triangle_cluster_offsets[i + 1]
-        return self.triangle_cluster_ids[a:b]
-
-    def triangles_in(self, clusters) -> np.ndarray:
-        """(F,) bool: triangles in at least one of ``clusters`` (id list or (C,) bool mask)."""
-        mask = np.asarray(clusters)
-        if mask.dtype != bool:
-            sel = np.zeros(self.n_clusters, bool)
-            sel[np.asarray(clusters, np.int64).reshape(-1)] = True
-            mask = sel
-        owner = np.repeat(np.arange(self.num_triangles), np.diff(self.triangle_cluster_offsets))
-        out = np.zeros(self.num_triangles, bool)
-        out[owner[mask[self.triangle_cluster_ids]]] = True
-        return out
-
-    def visible_triangles(self, cluster: int) -> np.ndarray:
-        """(F,) bool: triangles in the PVS of ``cluster`` (nothing from -1, outside the grid)."""
-        return self.triangles_in(self.pvs(cluster))
 
     def translated(self, offset) -> "CellVisibility":
         return dataclasses.replace(self, offset=self.offset + np.asarray(offset, np.float64).reshape(3))

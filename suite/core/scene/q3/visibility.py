@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from suite.errors import UserError
+from suite.core.scene.pvs import ClusterPVS
 
 LEAF_EPSILON_UNITS = 1.0
 
@@ -33,7 +34,7 @@ Q3_TO_SCENE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass
-class Q3Visibility:
+class Q3Visibility(ClusterPVS):
     """Leaves, BSP tree and PVS of a Quake III map, in scene coordinates.
 
     ``unit_m`` is the length of one Quake unit in scene units; ``offset`` a translation applied after the
@@ -126,47 +127,6 @@ class Q3Visibility:
         if self.pvs_rows is None:
             return np.ones(self.n_clusters, bool)
         return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
-
-    def pvs_matrix(self) -> np.ndarray:
-        """(C, C) bool, row c = ``pvs(c)``."""
-        if self._pvs_matrix is None:
-            if self.pvs_rows is None:
-                self._pvs_matrix = np.ones((self.n_clusters, self.n_clusters), bool)
-            else:
-                bits = np.unpackbits(self.pvs_rows, axis=1, bitorder="little")
-                self._pvs_matrix = bits[:, :self.n_clusters].astype(bool)
-        return self._pvs_matrix
-
-    def symmetry(self) -> dict:
-        """How far the stored PVS is from symmetric: pairs (a, b), a != b, with exactly one direction set."""
-        m = self.pvs_matrix()
-        off = ~np.eye(len(m), dtype=bool)
-        visible_pairs = int((m & off).sum())
-        one_way = int(((m != m.T) & off).sum())
-        return {"clusters": int(len(m)), "visible_ordered_pairs": visible_pairs, "one_way_ordered_pairs": one_way,
-                "one_way_fraction": one_way / max(visible_pairs, 1), "diagonal_all_set": bool(np.diag(m).all())}
-
-    # --- triangles --------------------------------------------------------------------------------
-    def clusters_of_triangle(self, i: int) -> np.ndarray:
-        a, b = self.triangle_cluster_offsets[i], self.triangle_cluster_offsets[i + 1]
-        return self.triangle_cluster_ids[a:b]
-
-    def triangles_in(self, clusters) -> np.ndarray:
-        """(F,) bool: triangles in at least one of ``clusters`` (a cluster id list or a (C,) bool mask)."""
-        mask = np.asarray(clusters)
-        if mask.dtype != bool:
-            sel = np.zeros(self.n_clusters, bool)
-            sel[np.asarray(clusters, np.int64).reshape(-1)] = True
-            mask = sel
-        owner = np.repeat(np.arange(self.num_triangles), np.diff(self.triangle_cluster_offsets))
-        out = np.zeros(self.num_triangles, bool)
-        out[owner[mask[self.triangle_cluster_ids]]] = True
-        return out
-
-    def visible_triangles(self, cluster: int) -> np.ndarray:
-        """(F,) bool: triangles in the PVS of ``cluster`` (what the engine would draw from there before
-        frustum culling). From cluster -1 (inside a wall) nothing is visible."""
-        return self.triangles_in(self.pvs(cluster))
 
     def translated(self, offset) -> "Q3Visibility":
         import dataclasses

@@ -1,0 +1,52 @@
+"""What every cluster visibility shares (a BSP's, :class:`suite.core.scene.q3.Q3Visibility`, and the computed
+one, :class:`suite.core.scene.cellvis.CellVisibility`): the PVS as packed bit rows, and triangles by cluster.
+
+A subclass provides ``n_clusters``, ``num_triangles``, ``pvs(cluster)``, ``pvs_rows`` ((C, ceil(C/8)) uint8,
+little-endian bit order, or None when every cluster sees every other), ``triangle_cluster_offsets`` and
+``triangle_cluster_ids`` (CSR lists of the clusters each triangle is in), and sets ``self._pvs_matrix = None``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class ClusterPVS:
+    def pvs_matrix(self) -> np.ndarray:
+        """(C, C) bool, row c = ``pvs(c)``."""
+        if self._pvs_matrix is None:
+            if self.pvs_rows is None:
+                self._pvs_matrix = np.ones((self.n_clusters, self.n_clusters), bool)
+            else:
+                bits = np.unpackbits(self.pvs_rows, axis=1, bitorder="little")
+                self._pvs_matrix = bits[:, :self.n_clusters].astype(bool)
+        return self._pvs_matrix
+
+    def symmetry(self) -> dict:
+        """How far the PVS is from symmetric: pairs (a, b), a != b, with exactly one direction set."""
+        m = self.pvs_matrix()
+        off = ~np.eye(len(m), dtype=bool)
+        visible_pairs = int((m & off).sum())
+        one_way = int(((m != m.T) & off).sum())
+        return {"clusters": int(len(m)), "visible_ordered_pairs": visible_pairs, "one_way_ordered_pairs": one_way,
+                "one_way_fraction": one_way / max(visible_pairs, 1), "diagonal_all_set": bool(np.diag(m).all())}
+
+    def clusters_of_triangle(self, i: int) -> np.ndarray:
+        a, b = self.triangle_cluster_offsets[i], self.triangle_cluster_offsets[i + 1]
+        return self.triangle_cluster_ids[a:b]
+
+    def triangles_in(self, clusters) -> np.ndarray:
+        """(F,) bool: triangles in at least one of ``clusters`` (a cluster id list or a (C,) bool mask)."""
+        mask = np.asarray(clusters)
+        if mask.dtype != bool:
+            sel = np.zeros(self.n_clusters, bool)
+            sel[np.asarray(clusters, np.int64).reshape(-1)] = True
+            mask = sel
+        owner = np.repeat(np.arange(self.num_triangles), np.diff(self.triangle_cluster_offsets))
+        out = np.zeros(self.num_triangles, bool)
+        out[owner[mask[self.triangle_cluster_ids]]] = True
+        return out
+
+    def visible_triangles(self, cluster: int) -> np.ndarray:
+        """(F,) bool: triangles in the PVS of ``cluster`` (what would be drawn from there before frustum
+        culling). From cluster -1 (inside a wall, outside the scene) nothing is visible."""
+        return self.triangles_in(self.pvs(cluster))
