@@ -48,7 +48,7 @@ from collections import deque
 
 from netsim.config import TCP_HEADER_BYTES, UDP_HEADER_BYTES, TcpConfig, UdpConfig
 from netsim.link import Link
-from netsim.tcp import ACK_BYTES, Message, _CongestionState
+from netsim.tcp import ACK_BYTES, Message, _CongestionState, rto_update
 
 INF = math.inf
 HOP, WAKE, MSG, FINAL = 0, 1, 2, 3
@@ -606,17 +606,8 @@ class TcpFlow(_Flow):
         engine.transmit(self, now, self.seg_bytes[i] + TCP_HEADER_BYTES, (self.period, i), True)
 
     def _rtt_sample(self, rtt_s: float) -> None:
-        """RFC 6298 2.2-2.3 (alpha = 1/8, beta = 1/4, K = 4, G = 1 ms), clamped to [min_rto, max_rto]."""
-        if rtt_s < self.min_rtt:
-            self.min_rtt = rtt_s
-        if self.srtt is None:
-            self.srtt = rtt_s
-            self.rttvar = rtt_s / 2.0
-        else:
-            self.rttvar = 0.75 * self.rttvar + 0.25 * abs(self.srtt - rtt_s)
-            self.srtt = 0.875 * self.srtt + 0.125 * rtt_s
-        rto = self.srtt + max(0.001, 4.0 * self.rttvar)
-        self.rto = min(max(rto, self.min_rto), self.max_rto)
+        self.min_rtt = min(self.min_rtt, rtt_s)
+        self.srtt, self.rttvar, self.rto = rto_update(self.srtt, self.rttvar, rtt_s, self.min_rto, self.max_rto)
 
     def _on_ack(self, engine: Engine, t: float, cum: int, ack_seg: int) -> None:
         cc = self.cc

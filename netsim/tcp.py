@@ -51,6 +51,18 @@ ACK_BYTES = TCP_HEADER_BYTES
 MAX_REPLAYED_MESSAGES = 8
 
 
+def rto_update(srtt_s, rttvar_s, rtt_s: float, min_rto_s: float, max_rto_s: float) -> tuple:
+    """RFC 6298 2.2-2.3 (alpha = 1/8, beta = 1/4, K = 4, G = 1 ms clock granularity), clamped to
+    [min_rto, max_rto] (2.4-2.5): (srtt, rttvar, rto) after one RTT sample; ``srtt_s`` None before the first."""
+    if srtt_s is None:
+        srtt_s, rttvar_s = rtt_s, rtt_s / 2.0
+    else:
+        rttvar_s = 0.75 * rttvar_s + 0.25 * abs(srtt_s - rtt_s)
+        srtt_s = 0.875 * srtt_s + 0.125 * rtt_s
+    rto = srtt_s + max(0.001, 4.0 * rttvar_s)
+    return srtt_s, rttvar_s, min(max(rto, min_rto_s), max_rto_s)
+
+
 @dataclass(eq=False)  # identity semantics: two equal-looking messages are still two messages
 class Message:
     size_bytes: int
@@ -716,17 +728,8 @@ class TcpConnection:
         return last_ack_s if una >= n else max(t, last_ack_s)
 
     def _rtt_sample(self, rtt_s: float, min_rto_s: float, max_rto_s: float) -> None:
-        """RFC 6298 2.2-2.3 (alpha = 1/8, beta = 1/4, K = 4), clamped to [min_rto, max_rto] (2.4-2.5)."""
-        if rtt_s < self.min_rtt_s:
-            self.min_rtt_s = rtt_s
-        if self.srtt_s is None:
-            self.srtt_s = rtt_s
-            self.rttvar_s = rtt_s / 2.0
-        else:
-            self.rttvar_s = 0.75 * self.rttvar_s + 0.25 * abs(self.srtt_s - rtt_s)
-            self.srtt_s = 0.875 * self.srtt_s + 0.125 * rtt_s
-        rto = self.srtt_s + max(0.001, 4.0 * self.rttvar_s)  # G = 1 ms clock granularity
-        self.rto_s = min(max(rto, min_rto_s), max_rto_s)
+        self.min_rtt_s = min(self.min_rtt_s, rtt_s)
+        self.srtt_s, self.rttvar_s, self.rto_s = rto_update(self.srtt_s, self.rttvar_s, rtt_s, min_rto_s, max_rto_s)
 
 
 if __name__ == "__main__":

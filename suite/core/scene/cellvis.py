@@ -35,7 +35,6 @@ map's own visibility and computes one for any other scene.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import os
@@ -138,18 +137,6 @@ class CellVisibility(ClusterPVS):
         if c >= self.n_clusters:
             raise UserError(f"cluster {c} is out of range 0..{self.n_clusters - 1}")
         return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
-
-    def translated(self, offset) -> "CellVisibility":
-        return dataclasses.replace(self, offset=self.offset + np.asarray(offset, np.float64).reshape(3))
-
-    def subset_triangles(self, keep: np.ndarray) -> "CellVisibility":
-        keep = np.asarray(keep, bool)
-        counts = np.diff(self.triangle_cluster_offsets)
-        owner = np.repeat(np.arange(len(counts)), counts)
-        ids = self.triangle_cluster_ids[keep[owner]]
-        offsets = np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64)
-        return dataclasses.replace(self, triangle_cluster_offsets=offsets, triangle_cluster_ids=ids,
-                                   triangle_cluster=self.triangle_cluster[keep])
 
     # --- storage ------------------------------------------------------------------------------------
     ARRAYS = ("origin", "dims", "pvs_rows", "triangle_cluster_offsets", "triangle_cluster_ids", "triangle_cluster")

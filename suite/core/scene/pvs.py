@@ -3,14 +3,31 @@ one, :class:`suite.core.scene.cellvis.CellVisibility`): the PVS as packed bit ro
 
 A subclass provides ``n_clusters``, ``num_triangles``, ``pvs(cluster)``, ``pvs_rows`` ((C, ceil(C/8)) uint8,
 little-endian bit order, or None when every cluster sees every other), ``triangle_cluster_offsets`` and
-``triangle_cluster_ids`` (CSR lists of the clusters each triangle is in), and sets ``self._pvs_matrix = None``.
+``triangle_cluster_ids`` (CSR lists of the clusters each triangle is in), ``triangle_cluster`` (one per triangle)
+and ``offset`` (the scene-frame translation), is a dataclass, and sets ``self._pvs_matrix = None``.
 """
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
 
 class ClusterPVS:
+    def translated(self, offset):
+        """The same visibility for the scene moved by ``offset``."""
+        return dataclasses.replace(self, offset=self.offset + np.asarray(offset, np.float64).reshape(3))
+
+    def subset_triangles(self, keep: np.ndarray):
+        """The same visibility for a scene that kept only the triangles where ``keep`` is True."""
+        keep = np.asarray(keep, bool)
+        counts = np.diff(self.triangle_cluster_offsets)
+        owner = np.repeat(np.arange(len(counts)), counts)
+        ids = self.triangle_cluster_ids[keep[owner]]
+        offsets = np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64)
+        return dataclasses.replace(self, triangle_cluster_offsets=offsets, triangle_cluster_ids=ids,
+                                   triangle_cluster=self.triangle_cluster[keep])
+
     def pvs_matrix(self) -> np.ndarray:
         """(C, C) bool, row c = ``pvs(c)``."""
         if self._pvs_matrix is None:

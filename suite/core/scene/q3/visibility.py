@@ -128,24 +128,6 @@ class Q3Visibility(ClusterPVS):
             return np.ones(self.n_clusters, bool)
         return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
 
-    def translated(self, offset) -> "Q3Visibility":
-        import dataclasses
-
-        return dataclasses.replace(self, offset=self.offset + np.asarray(offset, np.float64).reshape(3))
-
-    def subset_triangles(self, keep: np.ndarray) -> "Q3Visibility":
-        """The same visibility for a scene that kept only the triangles where ``keep`` is True."""
-        import dataclasses
-
-        keep = np.asarray(keep, bool)
-        counts = np.diff(self.triangle_cluster_offsets)
-        owner = np.repeat(np.arange(len(counts)), counts)
-        ids = self.triangle_cluster_ids[keep[owner]]
-        new_counts = counts[keep]
-        offsets = np.concatenate([[0], np.cumsum(new_counts)]).astype(np.int64)
-        return dataclasses.replace(self, triangle_cluster_offsets=offsets, triangle_cluster_ids=ids,
-                                   triangle_cluster=self.triangle_cluster[keep])
-
     # --- storage ------------------------------------------------------------------------------------
     ARRAYS = ("planes_normal", "planes_dist", "node_plane", "node_children", "leaf_cluster", "leaf_area",
               "leaf_mins_q3", "leaf_maxs_q3", "triangle_cluster_offsets", "triangle_cluster_ids", "triangle_cluster")
