@@ -1,0 +1,508 @@
+"""A-SVGF (Schied, Peters and Dachsbacher 2018), the denoiser of seed 001 (§4.4, §6.10, Tables 6.9 and 6.10).
+
+Stages in the order of Table 6.9 (TAA is :mod:`.taa`):
+
+1. **RNG** (:mod:`.rng`): a seed per pixel for the frame.
+2. **Forward projection** (:meth:`ASVGF.forward_project`), before any ray is traced: the previous frame is cut
+   into 3x3 strata (``GRAD_DWN``); one pixel per stratum, chosen with q2vkpt's TEA hash, has its shading sample
+   (primitive, barycentrics) moved to the current frame and projected; the first sample that lands in a 3x3
+   cell of the current frame becomes that cell's *gradient sample*: its pixel shades the previous frame's
+   surface point with the previous frame's seed (so with the same random numbers). A sample whose point is
+   hidden in the current frame (its distance differs from the G-buffer's depth there) is dropped.
+3. **Gradient image** (:meth:`ASVGF.gradient`), one texel per 3x3 cell: ``delta = l_curr - l_prev`` of the
+   gradient sample's illumination luminance and ``max(l_curr, l_prev)``, plus the cell's luminance mean and
+   standard deviation (for edge stopping).
+4. **Gradient a-trous** (:meth:`ASVGF.gradient_atrous`): ``gradient_iterations`` a-trous passes (steps 1, 2,
+   4, ...) reconstruct a dense gradient from the sparse one, stopping at luminance edges
+   (``exp(-dl^2 / (gradient_sigma * var))``, the thesis code's ``asvgf_grad_atrous``); then
+   ``lambda = min(1, |delta| / max)`` (Schied et al. 2018, eq. 7), 0 where nothing was lit.
+5. **Temporal accumulation** (:meth:`ASVGF.temporal`): the history is reprojected with the motion vectors
+   (bilinear taps, each kept only if its depth is within ``depth_tolerance`` depth-derivatives of the expected
+   one and its normal within 60 degrees, q2vkpt / Q2RTX); ``hist_len = min(hist_len + 1, history_cap)``,
+   ``alpha = max(alpha_min, 1 / hist_len)`` mixed toward 1 by the largest ``lambda`` of the 3x3 gradient cells
+   around the pixel (the anti-lag of q2vkpt's ``get_antilag_alpha``). Colour and luminance moments are blended
+   with their own minimum alphas.
+6. **Moments / variance** (:meth:`ASVGF.variance`): luminance variance from the temporal moments; where the
+   history is shorter than 4 frames from a 5x5 bilateral spatial estimate (q2vkpt's fallback); boosted by
+   ``max(1, 4 / hist_len)`` (Falcor's SVGFFilterMoments).
+7. **Spatial a-trous** (:meth:`ASVGF.atrous`): ``atrous_iterations`` (5) passes with steps 1, 2, 4, 8, 16 of a
+   (2r+1)^2 kernel (r = ``atrous_radius``; q2vkpt's 3x3 with weights 1, 1/2, 1/4, or SVGF's 5x5 B3 kernel),
+   edge-stopping on normal (``max(0, n.n')^phi_normal``), depth (``|dz| / (phi_depth * |grad z| * step *
+   |offset|)``) and luminance relative to the filtered standard deviation (``|dl| / (phi_color * sqrt(g3x3(var)))``),
+   the weights of SVGF (Schied et al. 2017) and Falcor's SVGFPass; the variance is filtered with the squared
+   weights. ``feedback_tap`` = k >= 1 writes the output of pass k into the colour history (q2vkpt and SVGF use
+   1); the default 0 keeps the history unfiltered, as the thesis requires ("it is important to not add
+   filtered data to the accumulation buffer", §4.4).
+
+What is filtered is demodulated illumination (radiance / albedo), and the result is multiplied by the albedo again
+in the composition (§6.11), as q2vkpt does. The per-pixel passes (reprojection, spatial variance, a-trous) are
+numba kernels parallel over image rows, the rest is vectorised numpy; the work counters count one tap per pixel
+and kernel tap and pass.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from methods.quake_drt.rng import tea_np
+
+GRAD_DWN = 3
+LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+@dataclass
+class ASVGFSettings:
+    antilag: bool = True
+    gradient_iterations: int = 5
+    gradient_sigma: float = 4.0
+    history_cap: int = 256
+    alpha_color: float = 0.075
+    alpha_moments: float = 0.1
+    depth_tolerance: float = 2.0
+    atrous_iterations: int = 5
+    atrous_radius: int = 1
+    phi_color: float = 10.0
+    phi_normal: float = 128.0
+    phi_depth: float = 1.0
+    feedback_tap: int = 0
+
+
+@dataclass
+class Guides:
+    """What the filters are guided by (pixel arrays (H, W, ...))."""
+
+    valid: np.ndarray  # (H, W) bool
+    point: np.ndarray  # (H, W, 3) float64 primary surface point (reprojection)
+    depth: np.ndarray  # (H, W) primary distance (reprojection test)
+    normal: np.ndarray  # (H, W, 3) primary normal (reprojection test)
+    motion: np.ndarray  # (H, W, 2) previous position - current, pixels
+    filter_depth: np.ndarray  # (H, W) distance along the path to the shaded surface (edge stopping)
+    filter_normal: np.ndarray  # (H, W, 3) normal of the shaded surface (edge stopping)
+    camera: np.ndarray  # (3,) camera position
+
+
+@dataclass
+class GradientSamples:
+    cur: np.ndarray  # (M,) current pixel (row-major)
+    prev: np.ndarray  # (M,) previous pixel it comes from
+    prim: np.ndarray  # (M,) previous shading sample
+    u: np.ndarray
+    v: np.ndarray
+    dist: np.ndarray  # (M,) distance of the moved point from the current camera
+
+    def __len__(self) -> int:
+        return int(len(self.cur))
+
+    def subset(self, keep) -> "GradientSamples":
+        return GradientSamples(*(getattr(self, f)[keep] for f in ("cur", "prev", "prim", "u", "v", "dist")))
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    return np.asarray(rgb, np.float32) @ LUMA
+
+
+def _shifted(a: np.ndarray, dy: int, dx: int, fill=0.0) -> np.ndarray:
+    """``out[y, x] = a[y + dy, x + dx]``, ``fill`` outside the image."""
+    h, w = a.shape[:2]
+    out = np.full_like(a, fill)
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    if ys.start < ys.stop and xs.start < xs.stop and abs(dy) < h and abs(dx) < w:
+        out[yd, xd] = a[ys, xs]
+    return out
+
+
+def depth_fwidth(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """|grad z| per pixel: the largest depth step to a valid 4-neighbour (a screen-space derivative)."""
+    d = np.where(valid, depth, 0.0).astype(np.float32)
+    out = np.zeros_like(d)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        ok = _shifted(valid, dy, dx, False)
+        out = np.maximum(out, np.where(ok, np.abs(_shifted(d, dy, dx) - d), 0.0))
+    return out
+
+
+def _whole(e: float) -> int:
+    """``e`` as an int when it is a whole number in [0, 4096] (fast powers), else -1."""
+    return int(e) if float(e).is_integer() and 0 <= e <= 4096 else -1
+
+
+def _kernel(radius: int) -> list[float]:
+    return [1.0, 0.5] if radius == 1 else [1.0, 2.0 / 3.0, 1.0 / 6.0]
+
+
+# --- compiled per-pixel passes (numba, parallel over rows) --------------------------------------------------------
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _reproject(motion, valid, point, cam_prev, tol, p_valid, p_depth, p_normal, normal, p_color, p_moments, p_hist,
+               out_c, out_m, out_h, out_ok):
+    """Bilinear fetch of the previous frame's history at each pixel's reprojected position, keeping only taps
+    whose depth and normal are consistent (stage 5)."""
+    h, w = valid.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            out_ok[y, x] = False
+            if not valid[y, x]:
+                continue
+            px = x + 0.5 + motion[y, x, 0] - 0.5
+            py = y + 0.5 + motion[y, x, 1] - 0.5
+            lx, ly = np.floor(px), np.floor(py)
+            fx, fy = px - lx, py - ly
+            ex = point[y, x, 0] - cam_prev[0]
+            ey = point[y, x, 1] - cam_prev[1]
+            ez = point[y, x, 2] - cam_prev[2]
+            expect = np.sqrt(ex * ex + ey * ey + ez * ez)
+            c0 = c1 = c2 = m0 = m1 = hs = ws = 0.0
+            for k in range(4):
+                ox, oy = k % 2, k // 2
+                wt = (fx if ox else 1.0 - fx) * (fy if oy else 1.0 - fy)
+                tx, ty = int(lx) + ox, int(ly) + oy
+                if tx < 0 or tx >= w or ty < 0 or ty >= h or not p_valid[ty, tx]:
+                    continue
+                if abs(p_depth[ty, tx] - expect) > tol[y, x]:
+                    continue
+                dot = (p_normal[ty, tx, 0] * normal[y, x, 0] + p_normal[ty, tx, 1] * normal[y, x, 1]
+                       + p_normal[ty, tx, 2] * normal[y, x, 2])
+                if dot <= 0.5:
+                    continue
+                c0 += p_color[ty, tx, 0] * wt
+                c1 += p_color[ty, tx, 1] * wt
+                c2 += p_color[ty, tx, 2] * wt
+                m0 += p_moments[ty, tx, 0] * wt
+                m1 += p_moments[ty, tx, 1] * wt
+                hs += p_hist[ty, tx] * wt
+                ws += wt
+            if ws > 1e-3:
+                out_ok[y, x] = True
+                out_c[y, x, 0], out_c[y, x, 1], out_c[y, x, 2] = c0 / ws, c1 / ws, c2 / ws
+                out_m[y, x, 0], out_m[y, x, 1] = m0 / ws, m1 / ws
+                out_h[y, x] = hs / ws
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pow(x, e, e_int):
+    """x ** e for x >= 0; by repeated multiplication when e is a whole number (128: 8 products, not a log and an
+    exp per tap)."""
+    if e_int < 0:
+        return x ** e
+    r, b, k = 1.0, x, e_int
+    while k > 0:
+        if k & 1:
+            r *= b
+        b *= b
+        k >>= 1
+    return r
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _spatial_variance(lum, z, n, fw, valid, phi_n, phi_n_int, out):
+    """Luminance variance from a 5x5 bilateral window (normal^phi_n, depth within 2 derivatives per pixel of
+    distance): q2vkpt's estimate where the history is too short (stage 6)."""
+    h, w = lum.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            out[y, x] = 0.0
+            if not valid[y, x]:
+                continue
+            s1 = s2 = ws = 0.0
+            for dy in range(-2, 3):
+                yy = y + dy
+                if yy < 0 or yy >= h:
+                    continue
+                for dx in range(-2, 3):
+                    xx = x + dx
+                    if xx < 0 or xx >= w or not valid[yy, xx]:
+                        continue
+                    if abs(z[yy, xx] - z[y, x]) >= 2.0 * fw[y, x] * max(abs(dx), abs(dy), 1):
+                        continue
+                    dot = n[y, x, 0] * n[yy, xx, 0] + n[y, x, 1] * n[yy, xx, 1] + n[y, x, 2] * n[yy, xx, 2]
+                    wq = _pow(max(dot, 0.0), phi_n, phi_n_int)
+                    lq = lum[yy, xx]
+                    s1 += wq * lq
+                    s2 += wq * lq * lq
+                    ws += wq
+            ws = max(ws, 1e-12)
+            out[y, x] = max(s2 / ws - (s1 / ws) ** 2, 0.0)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _atrous_pass(c, v, z, n, fw, valid, step, r, kern, phi_c, phi_n, phi_n_int, phi_z, out_c, out_v):
+    """One a-trous pass (stage 7): edge-stopping weights on luminance (against the 3x3 Gaussian of the variance),
+    depth and normal; colour filtered with the weights, variance with their squares."""
+    h, w = v.shape
+    k00 = kern[0] * kern[0]
+    for y in numba.prange(h):
+        for x in range(w):
+            vg = 0.0
+            for dy in range(-1, 2):
+                yy = y + dy
+                if yy < 0 or yy >= h:
+                    continue
+                for dx in range(-1, 2):
+                    xx = x + dx
+                    if xx < 0 or xx >= w:
+                        continue
+                    vg += v[yy, xx] * ((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
+            lum_c = 0.2126 * c[y, x, 0] + 0.7152 * c[y, x, 1] + 0.0722 * c[y, x, 2]
+            phi_l = phi_c * np.sqrt(max(vg, 0.0) + 1e-10)
+            a0, a1, a2 = c[y, x, 0] * k00, c[y, x, 1] * k00, c[y, x, 2] * k00
+            va = v[y, x] * k00 * k00
+            ws = k00
+            if valid[y, x]:
+                for dy in range(-r, r + 1):
+                    yy = y + dy * step
+                    if yy < 0 or yy >= h:
+                        continue
+                    for dx in range(-r, r + 1):
+                        if dx == 0 and dy == 0:
+                            continue
+                        xx = x + dx * step
+                        if xx < 0 or xx >= w or not valid[yy, xx]:
+                            continue
+                        lum_q = 0.2126 * c[yy, xx, 0] + 0.7152 * c[yy, xx, 1] + 0.0722 * c[yy, xx, 2]
+                        wl = abs(lum_c - lum_q) / phi_l
+                        wz = abs(z[y, x] - z[yy, xx]) / (phi_z * fw[y, x] * step * np.sqrt(dx * dx + dy * dy))
+                        dot = n[y, x, 0] * n[yy, xx, 0] + n[y, x, 1] * n[yy, xx, 1] + n[y, x, 2] * n[yy, xx, 2]
+                        wq = np.exp(-wl - wz) * _pow(max(dot, 0.0), phi_n, phi_n_int) * kern[abs(dx)] * kern[abs(dy)]
+                        a0 += c[yy, xx, 0] * wq
+                        a1 += c[yy, xx, 1] * wq
+                        a2 += c[yy, xx, 2] * wq
+                        va += v[yy, xx] * wq * wq
+                        ws += wq
+            out_c[y, x, 0], out_c[y, x, 1], out_c[y, x, 2] = a0 / ws, a1 / ws, a2 / ws
+            out_v[y, x] = va / (ws * ws)
+
+
+class ASVGF:
+    """The denoiser's state between frames and its stages (module docstring)."""
+
+    def __init__(self, settings: ASVGFSettings, width: int, height: int):
+        self.s = settings
+        self.w, self.h = int(width), int(height)
+        self.cw, self.ch = -(-self.w // GRAD_DWN), -(-self.h // GRAD_DWN)
+        self.reset()
+
+    def reset(self) -> None:
+        self.frame = 0
+        self.prev = None  # dict of the previous frame's buffers
+
+    # -- 2. forward projection ---------------------------------------------------------------------------
+
+    def forward_project(self, scene, t_s: float) -> GradientSamples:
+        """Gradient samples for this frame (before tracing)."""
+        from suite.core.gbuffer import project
+
+        empty = GradientSamples(*(np.zeros(0, np.int64),) * 3, np.zeros(0), np.zeros(0), np.zeros(0))
+        if self.prev is None:
+            return empty
+        w, h = self.w, self.h
+        gx, gy = np.meshgrid(np.arange(self.cw), np.arange(self.ch))
+        gx, gy = gx.reshape(-1), gy.reshape(-1)
+        a, b = tea_np((gx + gy * w).astype(np.uint32), np.uint32(self.frame & 0xFFFFFFFF))
+        px = gx * GRAD_DWN + (a % GRAD_DWN).astype(np.int64)
+        py = gy * GRAD_DWN + (b % GRAD_DWN).astype(np.int64)
+        inside = (px < w) & (py < h)
+        prev_pix = (py * w + px)[inside]
+        prev_pix = prev_pix[self.prev["sample_valid"][prev_pix]]
+        if len(prev_pix) == 0:
+            return empty
+        prim = self.prev["prim"][prev_pix]
+        u, v = self.prev["u"][prev_pix], self.prev["v"][prev_pix]
+        tri = scene.positions_at(t_s)[scene.faces[prim]].astype(np.float64)
+        pts = (tri * np.stack([1.0 - u - v, u, v], axis=-1)[..., None]).sum(axis=1)
+        pose = scene.camera.pose_at(t_s)
+        xy, z = project(pts, pose, scene.camera.fov_deg, w, h)
+        ok = (z > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)
+        ix = np.floor(xy[:, 0]).astype(np.int64)
+        iy = np.floor(xy[:, 1]).astype(np.int64)
+        cur = iy * w + ix
+        cell = (iy // GRAD_DWN) * self.cw + ix // GRAD_DWN
+        idx = np.nonzero(ok)[0]
+        # One sample per cell: the first (in stratum order) wins, like q2vkpt's atomic compare-and-swap.
+        _, first = np.unique(cell[idx], return_index=True)
+        keep = idx[first]
+        dist = np.linalg.norm(pts[keep] - np.asarray(pose.position, np.float64), axis=1)
+        return GradientSamples(cur[keep], prev_pix[keep], prim[keep], u[keep], v[keep], dist)
+
+    def seeds_with_gradients(self, seeds: np.ndarray, fwd: GradientSamples) -> np.ndarray:
+        """The frame's seeds with each gradient sample's pixel given the previous frame's seed."""
+        seeds = np.asarray(seeds, np.uint32).reshape(-1).copy()
+        if len(fwd):
+            seeds[fwd.cur] = self.prev["seeds"][fwd.prev]
+        return seeds
+
+    @staticmethod
+    def visible(fwd: GradientSamples, g) -> np.ndarray:
+        """(M,) bool: the moved point is what the current G-buffer sees at its pixel (not hidden, not off)."""
+        if len(fwd) == 0:
+            return np.zeros(0, bool)
+        depth = g.depth.reshape(-1)[fwd.cur].astype(np.float64)
+        valid = g.valid.reshape(-1)[fwd.cur]
+        return valid & (np.abs(depth - fwd.dist) <= 0.01 * depth + 1e-3)
+
+    # -- 3. gradient image ----------------------------------------------------------------------------------
+
+    def gradient(self, illum: np.ndarray, fwd: GradientSamples) -> np.ndarray:
+        """(ch, cw, 4): delta, max, cell luminance mean and standard deviation."""
+        w, h, cw, ch = self.w, self.h, self.cw, self.ch
+        lum = luminance(illum.reshape(h, w, 3))
+        pad = np.zeros((ch * GRAD_DWN, cw * GRAD_DWN), np.float32)
+        pad[:h, :w] = lum
+        blocks = pad.reshape(ch, GRAD_DWN, cw, GRAD_DWN)
+        mean = blocks.mean(axis=(1, 3))
+        std = np.sqrt(np.maximum((blocks * blocks).mean(axis=(1, 3)) - mean * mean, 0.0))
+        out = np.zeros((ch, cw, 4), np.float32)
+        out[..., 2], out[..., 3] = mean, std
+        if len(fwd) and self.prev is not None:
+            l_cur = lum.reshape(-1)[fwd.cur]
+            l_prev = self.prev["lum"][fwd.prev]
+            cy, cx = (fwd.cur // w) // GRAD_DWN, (fwd.cur % w) // GRAD_DWN
+            out[cy, cx, 0] = l_cur - l_prev
+            out[cy, cx, 1] = np.maximum(l_cur, l_prev)
+        return out
+
+    # -- 4. gradient a-trous ----------------------------------------------------------------------------------
+
+    def gradient_atrous(self, grad: np.ndarray, st=None) -> np.ndarray:
+        """(ch, cw) lambda in [0, 1]: how much of the history is invalid."""
+        val = grad[..., :2].copy()
+        var = (grad[..., 3] ** 2).astype(np.float32)
+        lum = np.minimum(grad[..., 2], 8.0)  # the thesis code's min(lum, 8)
+        for it in range(self.s.gradient_iterations):
+            step = 1 << it
+            # sigma from the 3x3 neighbourhood of the cell's luminance variance
+            sig = np.zeros_like(var)
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    sig += _shifted(var, dy, dx) * ((0.25 if dx == 0 else 0.125) * (2.0 if dy == 0 else 1.0))
+            sig = np.maximum(self.s.gradient_sigma * sig, 1e-8)
+            acc, wsum, vacc = val.copy(), np.ones_like(lum), var.copy()
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    if dx == 0 and dy == 0:
+                        continue
+                    inside = _shifted(np.ones_like(lum), dy * step, dx * step)
+                    lq = _shifted(lum, dy * step, dx * step)
+                    wq = inside * np.exp(-((lum - lq) ** 2) / sig)
+                    acc += _shifted(val, dy * step, dx * step) * wq[..., None]
+                    vacc += _shifted(var, dy * step, dx * step) * wq * wq
+                    wsum += wq
+            val = acc / wsum[..., None]
+            var = vacc / (wsum * wsum)
+        if st is not None:
+            st.count(taps=int(lum.size) * 9 * 2 * self.s.gradient_iterations)
+        delta, mx = np.abs(val[..., 0]), val[..., 1]
+        return np.where(mx > 1e-6, np.minimum(delta / np.maximum(mx, 1e-12), 1.0), 0.0).astype(np.float32)
+
+    def antilag(self, lam: np.ndarray) -> np.ndarray:
+        """(H, W): the largest lambda of the 3x3 gradient cells around each pixel's cell."""
+        m = lam.copy()
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                m = np.maximum(m, _shifted(lam, dy, dx))
+        full = np.repeat(np.repeat(m, GRAD_DWN, axis=0), GRAD_DWN, axis=1)
+        return full[:self.h, :self.w]
+
+    # -- 5. temporal accumulation ----------------------------------------------------------------------------
+
+    def temporal(self, illum: np.ndarray, guides: Guides, alpha_lag: np.ndarray | None, st=None):
+        """(colour, moments, hist_len, reprojected) after accumulating ``illum`` (H, W, 3) into the history."""
+        h, w = self.h, self.w
+        cur = illum.reshape(h, w, 3).astype(np.float32)
+        lum = luminance(cur)
+        mom_cur = np.stack([lum, lum * lum], axis=-1)
+        valid = guides.valid
+        color = cur.copy()
+        moments = mom_cur.copy()
+        hist = np.where(valid, 1.0, 0.0).astype(np.float32)
+        reprojected = np.zeros((h, w), bool)
+        if self.prev is not None:
+            p = self.prev
+            tol = self.s.depth_tolerance * np.maximum(depth_fwidth(guides.depth, valid),
+                                                      1e-3 * guides.depth.astype(np.float32))
+            prev_c = np.zeros((h, w, 3), np.float32)
+            prev_m = np.zeros((h, w, 2), np.float32)
+            prev_h = np.zeros((h, w), np.float32)
+            reprojected = np.zeros((h, w), bool)
+            _reproject(np.ascontiguousarray(guides.motion, np.float32), valid,
+                       np.ascontiguousarray(guides.point, np.float64), np.asarray(p["camera"], np.float64),
+                       tol.astype(np.float32), p["valid"], p["depth"], p["normal"],
+                       np.ascontiguousarray(guides.normal, np.float32), p["color"], p["moments"], p["hist"],
+                       prev_c, prev_m, prev_h, reprojected)
+            hist_r = np.minimum(prev_h + 1.0, float(self.s.history_cap))
+            a_c = np.maximum(self.s.alpha_color, 1.0 / hist_r)
+            a_m = np.maximum(self.s.alpha_moments, 1.0 / hist_r)
+            if alpha_lag is not None and self.s.antilag:
+                a_c = a_c + (1.0 - a_c) * alpha_lag
+                a_m = a_m + (1.0 - a_m) * alpha_lag
+            color = np.where(reprojected[..., None], prev_c + (cur - prev_c) * a_c[..., None], cur)
+            moments = np.where(reprojected[..., None], prev_m + (mom_cur - prev_m) * a_m[..., None], mom_cur)
+            hist = np.where(reprojected, hist_r, hist)
+        if st is not None:
+            st.count(taps=h * w * 4)
+        return color.astype(np.float32), moments.astype(np.float32), hist.astype(np.float32), reprojected
+
+    # -- 6. variance -------------------------------------------------------------------------------------------
+
+    def variance(self, illum: np.ndarray, moments: np.ndarray, hist: np.ndarray, guides: Guides, st=None):
+        """(H, W) luminance variance (module docstring, stage 6)."""
+        var_t = np.maximum(moments[..., 1] - moments[..., 0] ** 2, 0.0)
+        short = hist < 4.0
+        var = var_t
+        if short.any():
+            lum = luminance(illum.reshape(self.h, self.w, 3))
+            valid = guides.valid
+            z = np.ascontiguousarray(guides.filter_depth, np.float32)
+            n = np.ascontiguousarray(guides.filter_normal, np.float32)
+            fw = np.maximum(depth_fwidth(z, valid), 1e-3 * z).astype(np.float32)
+            var_s = np.zeros_like(lum)
+            _spatial_variance(lum, z, n, fw, valid, float(self.s.phi_normal), _whole(self.s.phi_normal), var_s)
+            var = np.where(short, var_s, var_t)
+            if st is not None:
+                st.count(taps=self.h * self.w * 25)
+        return (var * np.maximum(1.0, 4.0 / np.maximum(hist, 1.0))).astype(np.float32)
+
+    # -- 7. spatial a-trous ------------------------------------------------------------------------------------
+
+    def atrous(self, color: np.ndarray, var: np.ndarray, guides: Guides, st=None):
+        """(filtered colour, colour to store as history or None) after the a-trous passes."""
+        s = self.s
+        valid = guides.valid
+        z = guides.filter_depth.astype(np.float32)
+        z = np.where(valid, z, 0.0)
+        n = guides.filter_normal.astype(np.float32)
+        fw = np.maximum(depth_fwidth(z, valid), 1e-8)
+        r = int(s.atrous_radius)
+        kern = _kernel(r)
+        history = None
+        c, v = np.ascontiguousarray(color, np.float32), np.ascontiguousarray(var, np.float32)
+        z, n = np.ascontiguousarray(z, np.float32), np.ascontiguousarray(n, np.float32)
+        fw = fw.astype(np.float32)
+        kern_a = np.asarray(kern, np.float64)
+        for it in range(s.atrous_iterations):
+            out_c, out_v = np.empty_like(c), np.empty_like(v)
+            _atrous_pass(c, v, z, n, fw, valid, 1 << it, r, kern_a, float(s.phi_color), float(s.phi_normal),
+                         _whole(s.phi_normal), float(s.phi_depth), out_c, out_v)
+            c, v = out_c, out_v
+            if s.feedback_tap == it + 1:
+                history = c.copy()
+        if st is not None:
+            st.count(taps=self.h * self.w * (2 * r + 1) ** 2 * s.atrous_iterations)
+        return c, history
+
+    # -- end of frame ------------------------------------------------------------------------------------------
+
+    def end_frame(self, surface, seeds, illum, color, moments, hist, guides: Guides) -> None:
+        """Keeps what the next frame needs: shading samples and seeds (forward projection), raw luminance
+        (gradients), history colour, moments and length, and the reprojection guides."""
+        h, w = self.h, self.w
+        self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
+                     "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
+                     "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),
+                     "color": color.astype(np.float32), "moments": moments.astype(np.float32),
+                     "hist": hist.astype(np.float32), "depth": guides.depth.astype(np.float32),
+                     "normal": guides.normal.astype(np.float32), "camera": np.asarray(guides.camera, np.float64),
+                     "valid": guides.valid.copy()}
+        self.frame += 1

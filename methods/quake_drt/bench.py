@@ -1,0 +1,361 @@
+"""Benchmarks of seed 001's renderer: ``splitbench bench quake_drt`` (or ``python -m methods.quake_drt.bench``).
+
+Parts (``--parts``, default all), printed and stored in ``<results>/bench/quake_drt.json`` (``--out``, default
+``results``; a part that runs replaces its entry, the others are kept), so that the report shows them without
+running anything:
+
+``rays``
+    Rays per second of the two tracing stages against the backend's raw rate on the very same rays, median of
+    ``--repeats``: the primary stage (G-buffer plus anti-aliased shading rays, attributes, overlays) against the
+    raw closest-hit query on its camera rays; the direct stage (light rows, subsampling, ray generation, shadow
+    rays, accumulation) against the raw occlusion query on the rays it generated (captured from an untimed run).
+    Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct stage has work.
+``asvgf``
+    Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
+    TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
+    is in use); ``ms = a * megapixels + b`` fitted to the total. Seed 001 Fig. 7.8 measures the same on a GPU.
+``lights``
+    The direct stage against the light count: every light of the map (no culling), the culled rows (all of their
+    lights), and k = 1, 4, 16 random culled lights (uniform and power-proportional at k = 1), at one resolution;
+    then k = 1 and all culled lights at several resolutions (cost against pixels).
+
+Every part records its scene, backend and resolution; the document records where it ran (``packages``, ``host``,
+``git``) as a run's config.json does. Times are wall times of this machine and backend; they compare parts of one
+run with each other, not machines.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from methods.quake_drt import asvgf as asvgf_mod
+from methods.quake_drt import culling, direct
+from methods.quake_drt import pipeline as pl
+
+SCHEMA_VERSION = 1
+PARTS = ("rays", "asvgf", "lights")
+DEFAULT_SCENE = "oa:aggressor@pak1-maps"
+FALLBACK_SCENE = "two_rooms"  # methods/quake_drt/testscenes.py, when the OpenArena data is missing
+
+
+def _median_ms(fn, repeats: int):
+    """(median ms over ``repeats`` calls after one warm-up, last result)."""
+    result = fn()
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times)), result
+
+
+def load_scene(name: str):
+    """A scene by name; ``two_rooms`` is the hand-made test scene with its box PVS."""
+    if name == FALLBACK_SCENE:
+        from methods.quake_drt import testscenes
+
+        scene, vis = testscenes.two_rooms(door_open=False, lights_in_b=2, extra_lights=40)
+        return testscenes.with_visibility(scene, vis)
+    from suite.harness import runner
+
+    return runner.load_scene(name)
+
+
+class _Frame:
+    """A pipeline on a scene at one resolution, with helpers to time its pieces."""
+
+    def __init__(self, scene, tracer, resolution, t_s, **settings):
+        self.scene, self.tracer = scene, tracer
+        self.w, self.h = resolution
+        self.t_s = t_s
+        self.settings = pl.Settings.from_params(settings)
+        self.prep = pl.prepare(scene, tracer, self.settings, t_s)
+        self.pipe = pl.Pipeline(self.settings, self.prep, self.w, self.h)
+
+    def seeds(self, i=0):
+        from methods.quake_drt.rng import pixel_seeds
+
+        return pixel_seeds(1000 + i, self.w, self.h).reshape(-1)
+
+    def raw(self, i=0):
+        return self.pipe.raw_frame(self.scene, self.tracer, self.t_s, None, self.seeds(i))
+
+    def rays(self, fn) -> int:
+        before = sum(self.tracer.counters.values())
+        fn()
+        return int(sum(self.tracer.counters.values()) - before)
+
+    def direct(self, raw, capture=None, k=None, mode=None, cull=None):
+        s = self.settings
+        rows = culling.point_rows(self.prep.table, self.pipe._visibility(self.scene), raw.info["points"].prim,
+                                  raw.info["points"].p, raw.info["points"].ng, s.pixel_cluster, s.cluster_probe_m,
+                                  s.cull_lights if cull is None else cull)
+        return direct.shade(raw.info["points"], raw.info["lights_obj"], self.prep.table, rows,
+                            s.num_random_dl if k is None else k, mode or s.light_sampling, s.soft_shadows,
+                            self.tracer, self.scene, pl._min_distance(self.scene), s.chunk_rays, capture=capture)
+
+
+def bench_rays(scene, tracer, resolution, t_s: float, repeats: int) -> dict:
+    """Part ``rays`` (module docstring)."""
+    from suite.core.trace.base import as_rays
+
+    f = _Frame(scene, tracer, resolution, t_s, num_random_dl=0, denoiser=False, taa=False)
+    from methods.quake_drt import primary
+
+    def prim():
+        return primary.primary_stage(scene, tracer, t_s, None, (f.w, f.h), f.seeds(), f.settings.antialiasing)
+
+    prim_ms, _ = _median_ms(prim, repeats)
+    prim_rays = f.rays(prim)
+    o, d = primary.camera_rays(scene, t_s, f.w, f.h, f.seeds(), f.settings.antialiasing)
+    ro, rd, _, rlen = as_rays(o.astype(np.float32), d.astype(np.float32), 0.0, np.inf, tracer.shift)
+    raw_prim_ms, _ = _median_ms(lambda: tracer.raw_intersect(ro, rd, rlen), repeats)
+    out = {"primary": {"ms": prim_ms, "rays": prim_rays, "rays_per_s": prim_rays / (prim_ms / 1e3),
+                       "raw_ms": raw_prim_ms, "raw_rays": int(len(ro)),
+                       "raw_rays_per_s": len(ro) / (raw_prim_ms / 1e3),
+                       "ratio": (prim_rays / prim_ms) / (len(ro) / raw_prim_ms)}}
+    raw = f.raw()
+    captured = []
+    f.direct(raw, capture=captured)
+    o_all = np.concatenate([c[0] for c in captured]) if captured else np.zeros((0, 3), np.float32)
+    d_all = np.concatenate([c[1] for c in captured]) if captured else np.zeros((0, 3), np.float32)
+    l_all = np.concatenate([c[2] for c in captured]) if captured else np.zeros(0, np.float32)
+    dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
+    dir_rays = f.rays(lambda: f.direct(raw))
+    if len(o_all):
+        raw_ms, _ = _median_ms(lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()), repeats)
+    else:
+        raw_ms = float("nan")
+    out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3), "raw_ms": raw_ms,
+                     "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
+                     "ratio": (dir_rays / dir_ms) / (len(o_all) / raw_ms) if len(o_all) else float("nan"),
+                     "shadow_rays": int(len(o_all))}
+    return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
+            "num_random_dl 0 (every culled light), antialiasing on", **out}
+
+
+def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int) -> dict:
+    """Part ``asvgf`` (module docstring)."""
+    rows = []
+    for res in resolutions:
+        f = _Frame(scene, tracer, res, t_s, num_random_dl=1, denoiser=True, taa=True)
+        p = f.pipe
+        for i in range(2):  # two frames of a paused camera: the history is in use
+            p.run_frame(scene, tracer, t_s, t_s if i else None, 500 + i)
+        den = p.denoiser
+        fwd = den.forward_project(scene, t_s)
+        seeds = den.seeds_with_gradients(f.seeds(7), fwd)
+        raw = p.raw_frame(scene, tracer, t_s, t_s, seeds, fwd)
+        fwd = raw.info["fwd"]
+        saved = dict(den.prev)
+        times = {}
+        times["gradient"], grad = _median_ms(lambda: den.gradient(raw.illum, fwd), repeats)
+        times["gradient_atrous"], lam = _median_ms(lambda: den.gradient_atrous(grad), repeats)
+        alag = den.antilag(lam)
+        times["temporal"], (color, moments, hist, _) = _median_ms(
+            lambda: den.temporal(raw.illum, raw.guides, alag), repeats)
+        times["variance"], var = _median_ms(lambda: den.variance(raw.illum, moments, hist, raw.guides), repeats)
+        times["atrous"], (filtered, _) = _median_ms(lambda: den.atrous(color, var, raw.guides), repeats)
+        composed = raw.compose(filtered)
+        taa_hist = p.taa.history
+
+        def taa():
+            p.taa.history = taa_hist
+            return p.taa(composed, raw.g.motion)
+
+        times["taa"], _ = _median_ms(taa, repeats)
+        den.prev = saved
+        mp = res[0] * res[1] / 1e6
+        total = sum(v for k, v in times.items() if k != "taa")
+        rows.append({"resolution": list(res), "megapixels": mp, **{f"{k}_ms": v for k, v in times.items()},
+                     "denoiser_ms": total, "denoiser_ms_per_mp": total / mp, "taa_ms_per_mp": times["taa"] / mp})
+    mp = np.array([r["megapixels"] for r in rows])
+    ms = np.array([r["denoiser_ms"] for r in rows])
+    fit = {}
+    if len(rows) >= 2:
+        a, b = np.polyfit(mp, ms, 1)
+        pred = a * mp + b
+        ss = ((ms - ms.mean()) ** 2).sum()
+        fit = {"ms_per_mp": float(a), "intercept_ms": float(b),
+               "r2": float(1 - ((ms - pred) ** 2).sum() / ss) if ss > 0 else 1.0,
+               "exponent": float(np.polyfit(np.log(mp), np.log(ms), 1)[0])}
+    return {"scene": scene.name, "repeats": repeats, "rows": rows, "fit": fit,
+            "settings": "defaults (5 gradient and 5 a-trous passes, 3x3 kernel)"}
+
+
+def bench_lights(scene, tracer, resolution, resolutions, t_s: float, repeats: int) -> dict:
+    """Part ``lights`` (module docstring)."""
+    f = _Frame(scene, tracer, resolution, t_s, num_random_dl=0, denoiser=False, taa=False)
+    raw = f.raw()
+    cases = [("all lights, no culling", dict(k=0, cull=False)), ("culled, all of the row", dict(k=0)),
+             ("culled, k = 1", dict(k=1)), ("culled, k = 1, power", dict(k=1, mode="power")),
+             ("culled, k = 4", dict(k=4)), ("culled, k = 16", dict(k=16))]
+    rows = []
+    for label, kw in cases:
+        ms, (_, st) = _median_ms(lambda: f.direct(raw, **kw), repeats)
+        rows.append({"case": label, "k": kw.get("k", 0), "culled": kw.get("cull", True),
+                     "mode": kw.get("mode", "uniform"), "ms": ms, "shadow_rays": st.rays,
+                     "lights_per_point": st.candidates / max(len(raw.info["points"]), 1),
+                     "shaded_per_point": st.selected / max(len(raw.info["points"]), 1)})
+    by_pixels = []
+    for res in resolutions:
+        g = _Frame(scene, tracer, res, t_s, num_random_dl=0, denoiser=False, taa=False)
+        graw = g.raw()
+        for k in (1, 0):
+            ms, (_, st) = _median_ms(lambda: g.direct(graw, k=k), repeats)
+            by_pixels.append({"resolution": list(res), "pixels": res[0] * res[1], "k": k, "ms": ms,
+                              "shadow_rays": st.rays})
+    return {"scene": scene.name, "resolution": list(resolution), "lights": len(f.prep.lights),
+            "pvs_source": f.prep.table.source, "repeats": repeats, "rows": rows, "by_pixels": by_pixels}
+
+
+# ---------------------------------------------------------------------------------------------------- store
+
+def bench_path(results_root) -> Path:
+    return Path(results_root) / "bench" / "quake_drt.json"
+
+
+def load(results_root) -> dict | None:
+    import json
+
+    path = bench_path(results_root)
+    try:
+        return json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+
+
+def store(results_root, parts: dict) -> Path:
+    from suite.harness import results
+    from suite.harness.cli import bench_document
+
+    path = bench_path(results_root)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = load(results_root) or {}
+    doc.update(parts)
+    doc["schema_version"] = SCHEMA_VERSION
+    results.write_json(path, bench_document(doc))
+    return path
+
+
+# ------------------------------------------------------------------------------------------------------ CLI
+
+def parser():
+    from suite.harness.cli import _Parser
+
+    ap = _Parser(prog="splitbench bench quake_drt", description=__doc__.splitlines()[0])
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)}")
+    ap.add_argument("--scene", default=None, help=f"default {DEFAULT_SCENE} ({FALLBACK_SCENE} without the "
+                                                  "OpenArena data)")
+    ap.add_argument("--backend", default="embree")
+    ap.add_argument("--resolution", default="320x180", help="rays and lights resolution")
+    ap.add_argument("--resolutions", default="160x90,320x180,640x360", help="asvgf and lights-by-pixels resolutions")
+    ap.add_argument("--time", type=float, default=1.0, help="scene time of the benchmarked view, seconds")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", default="results", help="results root; the document goes to <out>/bench/")
+    ap.add_argument("--no-store", action="store_true", help="print only")
+    ap.add_argument("--json", action="store_true")
+    return ap
+
+
+def _resolutions(text: str):
+    from suite.harness.runner import parse_resolution
+
+    return [tuple(parse_resolution(r)) for r in text.split(",") if r.strip()]
+
+
+def default_scene() -> str:
+    from suite.core.scene import list_scenes
+
+    return DEFAULT_SCENE if not list_scenes().get(DEFAULT_SCENE, "unavailable").startswith("unavailable") \
+        else FALLBACK_SCENE
+
+
+def run(args) -> dict:
+    from suite.errors import UserError
+    from suite.harness import runner
+
+    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown or not parts:
+        raise UserError(f"unknown benchmark part '{unknown[0] if unknown else args.parts}' "
+                        f"(choose from {', '.join(PARTS)})")
+    if args.backend not in runner.backend_names():
+        raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
+    if args.repeats < 1:
+        raise UserError("--repeats must be >= 1")
+    name = args.scene or default_scene()
+    if name != FALLBACK_SCENE and not os.path.isfile(name) and name not in runner.scene_names():
+        raise UserError(f"unknown scene '{name}'")
+    scene = load_scene(name)
+    tracer = runner.make_tracer(args.backend, scene)
+    res = _resolutions(args.resolution)[0]
+    many = _resolutions(args.resolutions)
+    out = {}
+    if "rays" in parts:
+        out["rays"] = {"backend": args.backend, **bench_rays(scene, tracer, res, args.time, args.repeats)}
+    if "asvgf" in parts:
+        out["asvgf"] = {"backend": args.backend, **bench_asvgf(scene, tracer, many, args.time, args.repeats)}
+    if "lights" in parts:
+        out["lights"] = {"backend": args.backend,
+                         **bench_lights(scene, tracer, res, many, args.time, args.repeats)}
+    return out
+
+
+def format_results(out: dict) -> str:
+    lines = []
+    if "rays" in out:
+        r = out["rays"]
+        lines.append(f"rays/s, stage vs raw {r['backend']}: scene {r['scene']} {r['resolution'][0]}x"
+                     f"{r['resolution'][1]}, median of {r['repeats']}")
+        for stage in ("primary", "direct"):
+            s = r[stage]
+            lines.append(f"  {stage:8} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
+                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}")
+    if "asvgf" in out:
+        r = out["asvgf"]
+        lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")
+        for row in r["rows"]:
+            w, h = row["resolution"]
+            stages = "  ".join(f"{k[:-3]} {row[k]:.1f}" for k in row if k.endswith("_ms") and k != "denoiser_ms")
+            lines.append(f"  {w}x{h}: denoiser {row['denoiser_ms']:.1f} ms ({row['denoiser_ms_per_mp']:.0f} ms/MP), "
+                         f"{stages}")
+        if r["fit"]:
+            lines.append(f"  fit: {r['fit']['ms_per_mp']:.0f} ms/MP + {r['fit']['intercept_ms']:.1f} ms, "
+                         f"R² {r['fit']['r2']:.4f}, exponent {r['fit']['exponent']:.2f}")
+    if "lights" in out:
+        r = out["lights"]
+        lines.append(f"direct stage vs lights: scene {r['scene']} {r['resolution'][0]}x{r['resolution'][1]}, "
+                     f"{r['lights']} lights, PVS {r['pvs_source']}")
+        for row in r["rows"]:
+            lines.append(f"  {row['case']:26} {row['ms']:9.1f} ms  {row['shadow_rays']:>10,} rays  "
+                         f"{row['lights_per_point']:6.1f} lights/point  {row['shaded_per_point']:6.1f} shaded")
+        for row in r["by_pixels"]:
+            w, h = row["resolution"]
+            lines.append(f"  {w}x{h} k={row['k']}: {row['ms']:.1f} ms, {row['shadow_rays']:,} rays")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    import json
+
+    args = parser().parse_args(argv)
+    out = run(args)
+    if not args.no_store:
+        path = store(args.out, out)
+        out_note = f"stored {path}"
+    else:
+        out_note = "not stored"
+    if args.json:
+        print(json.dumps(out, indent=1, default=float))
+    else:
+        print(format_results(out))
+        print(out_note)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

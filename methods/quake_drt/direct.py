@@ -1,0 +1,426 @@
+"""Direct illumination stage (seed 001 §4.1, §6.6, Algorithm 6.2) with light culling and light subsampling.
+
+For every shading point (a diffuse or glossy surface that the primary or secondary stage reached) the stage
+reads its row of the light visibility table (:mod:`.culling`; the all-lights row when ``rt_cullLights`` is off)
+and shoots shadow rays:
+
+* ``k = 0`` (the thesis's ``rt_numRandomDL 0``) or ``k >= n``: one ray to each of the n candidate lights,
+  weight 1 (Algorithm 6.2 without subsampling; "k larger than the culled light count" uses them all);
+* ``k < n``, ``mode = "uniform"``: k *distinct* lights chosen uniformly (Floyd's algorithm), weight n / k.
+  Each light is chosen with probability k / n, so the estimator is unbiased (tests/methods/quake_drt/
+  test_estimator.py proves it against the all-lights image within its standard error);
+* ``k < n``, ``mode = "power"``: k independent choices with probability proportional to emitted power
+  (``LightList.power``) among the n candidates, weight 1 / (k p_l): unbiased too, fewer samples wasted on
+  weak lights. On maps with sun and sky lights (point lights 10 km away, with enormous flux but ordinary
+  irradiance) nearly every sample goes to them and the other lights' share of the image converges only after
+  millions of frames: measured on kaos, 64 frames of it hold 5 % of the image's light;
+* ``k < n``, ``mode = "irradiance"``: the same with probabilities proportional to each light's intensity over its
+  squared distance to the row's clusters (:func:`row_irradiance_cdf`): the suite's improvement for such maps.
+
+Two defects of the public implementation of the thesis (``lights.glsl`` of Quake-III-Arena-R) are avoided: the
+random index ``int(round(u * n))`` can be n, one past the row (an out-of-range light index, and the end lights
+get half the probability); here the index is ``floor(u * n)`` with 24-bit ``u < 1``, so always ``< n``. And
+``amplification = totalNumLights / numLights`` divides two unsigned integers, so 5 lights subsampled to 2 weigh
+2 instead of 2.5 (a downward bias); here the weight is a float. Light indices are int32 throughout (the table
+is a CSR list, not a bit mask), so any number of lights works.
+
+A point light at distance d adds ``w * f * cos_x * I / d^2``; an area light sampled at a point y adds
+``w * f * cos_x * cos_y * L_e * A / d^2`` (soft shadows: a uniform random point; ``rt_softshadows 0``: the
+light's representative point). Distances are clamped at ``min_distance`` so a light exactly on a surface stays
+finite; a light below the surface's geometric horizon or behind a one-sided emitter gets no ray. For Lambertian
+surfaces f = 1/pi and the stage returns *illumination* (radiance / albedo), which is what the denoiser filters;
+for glossy ones it returns radiance (their albedo for demodulation is 1).
+
+Two compiled kernels do the per-ray work: ``_select`` picks the lights of each point (the subsampling above) and
+``_rays`` writes their shadow rays straight into the tracer's frame (origins offset by
+``suite.core.trace.robust.offset_ray_origin``), in chunks of at most ``chunk_rays``; with more than one chunk a
+worker thread generates the next chunk while the backend traces the current one.
+"""
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from methods.quake_drt.rng import DIM_LIGHTS
+from suite.core.shading import SHADOW_TMAX_SCALE
+from suite.core.trace.robust import offset_ray_origin
+
+MODES = ("uniform", "power", "irradiance")
+INV_PI = 1.0 / np.pi
+DEFAULT_CHUNK_RAYS = 1 << 20
+
+
+# The numba twin of rng.pcg_np / rng.uniform_np (same bits; tests/methods/quake_drt/test_rng.py).
+_MASK = 0xFFFFFFFF
+_INV_2_24 = 1.0 / 16777216.0
+
+
+@numba.njit(inline="always")
+def pcg_nb(v):
+    # numba widens uint32 arithmetic to 64 bits; masking after each product keeps numpy's uint32 wrap-around.
+    m = np.uint64(_MASK)
+    state = (np.uint64(v) * np.uint64(747796405) + np.uint64(2891336453)) & m
+    word = (((state >> ((state >> np.uint64(28)) + np.uint64(4))) ^ state) * np.uint64(277803737)) & m
+    return (word >> np.uint64(22)) ^ word
+
+
+@numba.njit(inline="always")
+def uniform_nb(seed, dim):
+    m = np.uint64(_MASK)
+    h = pcg_nb((np.uint64(seed) & m) ^ pcg_nb((np.uint64(dim) + np.uint64(0x9E3779B9)) & m))
+    return np.float64(h >> np.uint64(8)) * _INV_2_24
+
+
+
+@dataclass
+class ShadingPoints:
+    """Surfaces to light: where primary rays and specular chains ended on diffuse or glossy materials."""
+
+    pixel: np.ndarray  # (N,) int64 row-major pixel index
+    throughput: np.ndarray  # (N, 3) float64 product of specular weights along the chain (1 for primary hits)
+    p: np.ndarray  # (N, 3) float64 world position
+    ng: np.ndarray  # (N, 3) float64 geometric normal on the side the ray arrived from
+    ns: np.ndarray  # (N, 3) float64 shading normal the BSDF is evaluated around
+    wi: np.ndarray  # (N, 3) float64 unit direction toward the viewer
+    albedo: np.ndarray  # (N, 3) float64
+    material: np.ndarray  # (N,) int64
+    prim: np.ndarray  # (N,) int64 face id
+    seed: np.ndarray  # (N,) uint32 random stream (the pixel's seed, or one derived per chain)
+    lambert: np.ndarray  # (N,) bool: diffuse kinds (f = albedo / pi); False = glossy (full BSDF)
+
+    def __len__(self) -> int:
+        return int(len(self.pixel))
+
+    @staticmethod
+    def concat(parts: list) -> "ShadingPoints":
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return ShadingPoints.empty()
+        return ShadingPoints(*[np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS])
+
+    @staticmethod
+    def empty() -> "ShadingPoints":
+        z3 = np.zeros((0, 3))
+        return ShadingPoints(np.zeros(0, np.int64), z3, z3, z3, z3, z3, z3, np.zeros(0, np.int64),
+                             np.zeros(0, np.int64), np.zeros(0, np.uint32), np.zeros(0, bool))
+
+    def subset(self, sel) -> "ShadingPoints":
+        return ShadingPoints(*[getattr(self, f)[sel] for f in _FIELDS])
+
+
+_FIELDS = ("pixel", "throughput", "p", "ng", "ns", "wi", "albedo", "material", "prim", "seed", "lambert")
+
+
+@dataclass
+class DirectStats:
+    candidates: int = 0  # sum over points of the lights in their row (after culling)
+    selected: int = 0  # sum over points of the lights chosen (after subsampling)
+    rays: int = 0  # shadow rays traced (selected minus those below the horizon / behind the emitter)
+    visible: int = 0  # unoccluded shadow rays
+
+
+@numba.njit(cache=True, nogil=True)
+def _find(cdf, a, n, u):
+    """First index j in [0, n) with cdf[a + j] > u (binary search), clamped to n - 1."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if cdf[a + mid] > u:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@numba.njit(cache=True, nogil=True)
+def _select(i0, rows, row_off, row_lights, row_cdf, k, mode, seeds, chosen, s_point, s_light, s_weight, s_dim):
+    """Light subsampling: the (point, light, weight, random dimension) samples of points i0, i0 + 1, ... until
+    the sample arrays are full. Returns (samples, next point, candidates, selected)."""
+    cap = s_point.shape[0]
+    count = 0
+    cand = 0
+    sel = 0
+    n_pts = rows.shape[0]
+    i = i0
+    while i < n_pts:
+        r = rows[i]
+        a = row_off[r]
+        n = row_off[r + 1] - a
+        take = n if (k == 0 or k >= n) else k
+        if count + take > cap:
+            if i == i0:
+                raise ValueError("chunk_rays is smaller than one point's light count")
+            break
+        cand += n
+        sel += take
+        if take == n:
+            # Every candidate (thesis Alg. 6.2), weight 1. The light's own index picks its random numbers, so
+            # culled and unculled frames sample each light identically.
+            for j in range(n):
+                light = row_lights[a + j]
+                s_point[count], s_light[count], s_weight[count] = i, light, 1.0
+                s_dim[count] = DIM_LIGHTS + 4 * light
+                count += 1
+        elif mode == 0:
+            # k distinct lights, uniformly (Floyd's algorithm); each is in the sample with probability k / n.
+            m = 0
+            for j in range(n - k, n):
+                t = int(uniform_nb(seeds[i], DIM_LIGHTS + 4 * m) * (j + 1))
+                if t > j:
+                    t = j
+                dup = False
+                for q in range(m):
+                    if chosen[q] == t:
+                        dup = True
+                        break
+                chosen[m] = j if dup else t
+                m += 1
+            weight = n / k  # float division: 5 lights subsampled to 2 weigh 2.5
+            for q in range(k):
+                s_point[count], s_light[count], s_weight[count] = i, row_lights[a + chosen[q]], weight
+                s_dim[count] = DIM_LIGHTS + 4 * q
+                count += 1
+        else:
+            # k independent choices from the row's distribution (power or irradiance, ``row_cdf``).
+            for q in range(k):
+                j = _find(row_cdf, a, n, uniform_nb(seeds[i], DIM_LIGHTS + 4 * q))
+                pj = row_cdf[a + j] - (row_cdf[a + j - 1] if j > 0 else 0.0)
+                if pj <= 0.0:
+                    continue
+                s_point[count], s_light[count], s_weight[count] = i, row_lights[a + j], 1.0 / (k * pj)
+                s_dim[count] = DIM_LIGHTS + 4 * q
+                count += 1
+        i += 1
+    return count, i, cand, sel
+
+
+@numba.njit(cache=True, nogil=True)
+def _rays(n_samples, s_point, s_light, s_weight, s_dim, origin, ng, ns, lambert, seeds, kind, lpos, lrgb, larea,
+          tri_off, tri_p0, tri_e1, tri_e2, tri_n, tri_cdf, rep_tri, soft, shift, min_d2, tmax_scale, o_out, d_out,
+          len_out, w_out, ray_point, ray_light):
+    """The shadow ray of every sample, in the tracer's frame, compacted to the samples whose light is above the
+    point's horizon and faces it. Returns the ray count."""
+    count = 0
+    for q in range(n_samples):
+        i = s_point[q]
+        light = s_light[q]
+        dimbase = s_dim[q]
+        ox, oy, oz = origin[i, 0], origin[i, 1], origin[i, 2]
+        if kind[light] == 0:
+            yx, yy, yz = lpos[light, 0], lpos[light, 1], lpos[light, 2]
+            nyx, nyy, nyz = 0.0, 0.0, 0.0
+        else:
+            a = tri_off[light]
+            if soft:
+                t = a + _find(tri_cdf, a, tri_off[light + 1] - a, uniform_nb(seeds[i], dimbase + 1))
+                su = np.sqrt(uniform_nb(seeds[i], dimbase + 2))
+                b1 = 1.0 - su
+                b2 = uniform_nb(seeds[i], dimbase + 3) * su
+            else:
+                t = rep_tri[light]
+                b1 = 1.0 / 3.0
+                b2 = 1.0 / 3.0
+            yx = tri_p0[t, 0] + b1 * tri_e1[t, 0] + b2 * tri_e2[t, 0]
+            yy = tri_p0[t, 1] + b1 * tri_e1[t, 1] + b2 * tri_e2[t, 1]
+            yz = tri_p0[t, 2] + b1 * tri_e1[t, 2] + b2 * tri_e2[t, 2]
+            nyx, nyy, nyz = tri_n[t, 0], tri_n[t, 1], tri_n[t, 2]
+        tx, ty, tz = yx - ox, yy - oy, yz - oz
+        d2 = tx * tx + ty * ty + tz * tz
+        dist = np.sqrt(d2)
+        inv = 1.0 / max(dist, 1e-30)
+        dx, dy, dz = tx * inv, ty * inv, tz * inv
+        if dx * ng[i, 0] + dy * ng[i, 1] + dz * ng[i, 2] <= 0.0:
+            continue  # below the geometric horizon: the surface shadows itself
+        cos_x = dx * ns[i, 0] + dy * ns[i, 1] + dz * ns[i, 2]
+        if lambert[i] and cos_x <= 0.0:
+            continue
+        g = s_weight[q] / max(d2, min_d2)
+        if kind[light] != 0:
+            cos_y = -(dx * nyx + dy * nyy + dz * nyz)
+            if cos_y <= 0.0:
+                continue  # behind the one-sided emitter
+            g *= cos_y * larea[light]
+        if lambert[i]:
+            g *= cos_x * 0.3183098861837907
+        o_out[count, 0] = ox - shift[0]
+        o_out[count, 1] = oy - shift[1]
+        o_out[count, 2] = oz - shift[2]
+        d_out[count, 0], d_out[count, 1], d_out[count, 2] = dx, dy, dz
+        len_out[count] = max(np.float32(dist * tmax_scale), np.float32(0.0))
+        w_out[count, 0] = g * lrgb[light, 0]
+        w_out[count, 1] = g * lrgb[light, 1]
+        w_out[count, 2] = g * lrgb[light, 2]
+        ray_point[count] = i
+        ray_light[count] = light
+        count += 1
+    return count
+
+
+def row_cdf(row_offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(S,) cumulative normalised ``weights`` (one per entry of the rows' light lists) within each row."""
+    w = np.maximum(np.asarray(weights, np.float64), 0.0)
+    counts = np.diff(row_offsets)
+    cs = np.concatenate([[0.0], np.cumsum(w)])
+    owner = np.repeat(np.arange(len(counts)), counts)
+    start = cs[row_offsets[owner]]
+    total = cs[row_offsets[owner + 1]] - start
+    cdf = np.where(total > 0, (cs[1:] - start) / np.where(total > 0, total, 1.0), 0.0)
+    ends = row_offsets[1:][counts > 0] - 1
+    cdf[ends[cdf[ends] > 0]] = 1.0  # exact ends: a uniform number below 1 always finds a light
+    return cdf
+
+
+def row_power_cdf(row_offsets: np.ndarray, row_lights: np.ndarray, power: np.ndarray) -> np.ndarray:
+    """(S,) the ``power`` mode's distribution: each row's lights in proportion to their emitted flux."""
+    return row_cdf(row_offsets, np.asarray(power, np.float64)[row_lights])
+
+
+def row_irradiance_cdf(table, lights) -> np.ndarray:
+    """(S,) the ``irradiance`` mode's distribution: each row's lights in proportion to the irradiance they could
+    give the row's clusters, intensity (I, or L_e x A for an area light) over the squared distance from the light to
+    the centre of the clusters' bounds, the distance at least their half-diagonal. Unlike flux, this does not let a
+    sun 10 km away (huge flux, ordinary irradiance) take every sample."""
+    from methods.quake_drt.lights import POINT
+
+    counts = np.diff(table.row_offsets)
+    owner = np.repeat(np.arange(len(counts)), counts)
+    li = np.asarray(table.row_lights, np.int64)
+    if table.row_centre is None:
+        return row_power_cdf(table.row_offsets, table.row_lights, lights.power)
+    d2 = ((lights.position[li] - table.row_centre[owner]) ** 2).sum(axis=1)
+    d2 = np.maximum(d2, table.row_radius[owner] ** 2 + 1e-12)
+    intensity = lights.rgb.mean(axis=1) * np.where(lights.kind == POINT, 1.0, lights.area)
+    return row_cdf(table.row_offsets, intensity[li] / d2)
+
+
+def trace_shadow(tracer, o_local, d, length, skip_faces=None):
+    """Occlusion of rays in the tracer's frame. ``skip_faces`` (bool per face): surfaces that do not cast shadows
+    (the primary stage's transparent overlays); a ray the backend finds blocked is then re-resolved by a
+    closest-hit walk that passes them."""
+    soa = bool(getattr(tracer, "soa_origins", False))
+    if hasattr(tracer, "occluded_local"):
+        occ = tracer.occluded_local(np.ascontiguousarray(o_local.T) if soa else o_local, d, length)
+    else:
+        shift = getattr(tracer, "shift", np.zeros(3))
+        occ = tracer.occluded(o_local.astype(np.float64) + shift, d, 0.0, length)
+    occ = np.asarray(occ, bool)
+    if skip_faces is not None and occ.any():
+        from methods.quake_drt.primary import walk_past
+
+        idx = np.nonzero(occ)[0]
+        shift = getattr(tracer, "shift", np.zeros(3))
+        o_world = o_local[idx].astype(np.float64) + shift
+        hits = walk_past(tracer, o_world, d[idx].astype(np.float64), length[idx].astype(np.float64), skip_faces)
+        occ = occ.copy()
+        occ[idx] = hits.prim >= 0
+    return occ
+
+
+def shade(points: ShadingPoints, lights, table, rows: np.ndarray, k: int, mode: str, soft: bool, tracer, scene,
+          min_distance: float, chunk_rays: int = DEFAULT_CHUNK_RAYS, skip_faces=None,
+          row_cdf: np.ndarray | None = None, capture: list | None = None) -> tuple[np.ndarray, DirectStats]:
+    """(N, 3) illumination of every shading point (radiance / albedo for Lambertian points, radiance for glossy
+    ones) and the work done. ``rows`` are the table rows the points read (:func:`.culling.point_rows`).
+    ``capture``: a list that receives a copy of every chunk of rays ``(o, d, length)`` in the tracer's frame (the
+    benchmark traces them again through the backend's raw query)."""
+    n = len(points)
+    out = np.zeros((n, 3), np.float64)
+    stats = DirectStats()
+    if n == 0 or len(lights) == 0:
+        return out, stats
+    if mode not in MODES:
+        raise ValueError(f"unknown light sampling mode '{mode}'")
+    mode_code = MODES.index(mode)
+    if row_cdf is None:
+        if mode == "power":
+            row_cdf = row_power_cdf(table.row_offsets, table.row_lights, lights.power)
+        elif mode == "irradiance":
+            row_cdf = row_irradiance_cdf(table, lights)
+        else:
+            row_cdf = np.zeros(len(table.row_lights))
+    rows = np.ascontiguousarray(rows, np.int64)
+    counts = np.diff(table.row_offsets)[rows]
+    per_point = counts if k == 0 else np.minimum(counts, k)
+    cap = int(max(1, min(int(per_point.sum()), max(int(chunk_rays), int(per_point.max(initial=1))))))
+    shift = np.asarray(getattr(tracer, "shift", np.zeros(3)), np.float64)
+    origin = offset_ray_origin(points.p, points.ng, shift)
+    seeds = np.ascontiguousarray(points.seed, np.uint32)
+    geometry = (origin, np.ascontiguousarray(points.ng, np.float64), np.ascontiguousarray(points.ns, np.float64),
+                np.ascontiguousarray(points.lambert, np.bool_), seeds, lights.kind, lights.position, lights.rgb,
+                lights.area, lights.tri_offsets, np.ascontiguousarray(lights.tri_p0), lights.tri_e1, lights.tri_e2,
+                lights.tri_normal, lights.tri_cdf, lights.rep_tri, bool(soft), shift, float(min_distance) ** 2,
+                float(SHADOW_TMAX_SCALE))
+    glossy = not bool(np.all(points.lambert))
+    many = int(per_point.sum()) > cap
+    slots = [_Buffers(cap, k) for _ in range(2 if many else 1)]
+
+    def produce(i, slot):
+        b = slots[slot]
+        samples, i_next, cand, sel = _select(i, rows, table.row_offsets, table.row_lights, row_cdf, int(k),
+                                             mode_code, seeds, b.chosen, b.s_point, b.s_light, b.s_weight, b.s_dim)
+        count = _rays(samples, b.s_point, b.s_light, b.s_weight, b.s_dim, *geometry, b.o, b.d, b.length, b.w,
+                      b.ray_point, b.ray_light)
+        return i_next, count, cand, sel
+
+    # With more than one chunk, a worker generates the next chunk's rays (compiled, GIL released) while the
+    # backend traces the current one's; the two buffer slots alternate. Results do not depend on the timing.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(produce, 0, 0)
+        slot = 0
+        while True:
+            i_next, count, cand, sel = pending.result()
+            if i_next < n:
+                pending = pool.submit(produce, i_next, 1 - slot)
+            stats.candidates += int(cand)
+            stats.selected += int(sel)
+            if count:
+                b = slots[slot]
+                o, d, length = b.o[:count], b.d[:count], b.length[:count]
+                if capture is not None:
+                    capture.append((o.copy(), d.copy(), length.copy()))
+                occ = trace_shadow(tracer, o, d, length, skip_faces)
+                lit = np.nonzero(~occ)[0]
+                stats.rays += int(count)
+                stats.visible += int(len(lit))
+                w = b.w[lit]
+                pt = b.ray_point[lit]
+                if glossy:
+                    w = _apply_glossy_bsdf(scene, points, pt, d[lit].astype(np.float64), w)
+                for c in range(3):
+                    out[:, c] += np.bincount(pt, weights=w[:, c], minlength=n)
+            if i_next >= n:
+                break
+            slot = 1 - slot if len(slots) > 1 else 0
+    return out, stats
+
+
+class _Buffers:
+    """One slot of ray buffers: the light samples of a chunk and their rays."""
+
+    def __init__(self, cap: int, k: int):
+        self.chosen = np.empty(max(int(k), 1), np.int64)
+        self.s_point, self.s_light = np.empty(cap, np.int64), np.empty(cap, np.int64)
+        self.s_weight, self.s_dim = np.empty(cap, np.float64), np.empty(cap, np.int64)
+        self.o, self.d = np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32)
+        self.length, self.w = np.empty(cap, np.float32), np.empty((cap, 3), np.float64)
+        self.ray_point, self.ray_light = np.empty(cap, np.int32), np.empty(cap, np.int32)
+
+
+def _apply_glossy_bsdf(scene, points: ShadingPoints, pt: np.ndarray, wo: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Multiplies the rays of glossy points by their BSDF times cos (Mitsuba's ``eval``; suite.core.bsdf)."""
+    from suite.core.bsdf import eval_bsdf
+
+    glossy = ~points.lambert[pt]
+    if not glossy.any():
+        return w
+    w = w.copy()
+    idx = np.nonzero(glossy)[0]
+    mats = points.material[pt[idx]]
+    for mid in np.unique(mats):
+        sel = idx[mats == mid]
+        p = pt[sel]
+        w[sel] *= eval_bsdf(scene.materials[int(mid)], points.wi[p], wo[sel], points.ns[p], points.albedo[p])
+    return w

@@ -1,0 +1,118 @@
+"""The report section "Seed 001 — quake_drt" builds from stored results only (frames, config.json, the bench
+document), states scene and backend of every table, and gives each claim the verdict kind that fits: one-sided
+claims against their bound, the spp cost by construction, GPU timings not measurable."""
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from methods.quake_drt import report
+from suite.harness import verdicts
+
+SCENE, RES = "oa:aggressor@pak1-maps", "320x180"
+PIXELS = 320 * 180
+PRIMARY_RAYS = 2 * PIXELS
+
+
+def _work_ms(shadow, spp=1, denoiser=False):
+    return 1e-6 * (50 * spp * (shadow + PRIMARY_RAYS) + 20 * 3 * PIXELS + 2 * (8_000_000 if denoiser else 0))
+
+
+def _run(root, variant, frames, frame_ms, rays, k=1, spp=1, gt=None, cull=True, denoiser=True, taa=True,
+         extra=None):
+    name = f"quake_drt-{variant}-k{k}-s{spp}-f{frames}"
+    d = root / name
+    d.mkdir(parents=True)
+    params = {"num_random_dl": k, "spp": spp, "cull_lights": cull, "denoiser": denoiser, "taa": taa,
+              "gt_frames": 64 if gt else 0}
+    (d / "config.json").write_text(json.dumps({"config": {"backend": "embree", "params": params}}))
+    rows = []
+    for i in range(frames):
+        shadow = rays[i] if isinstance(rays, list) else rays
+        row = {"run": name, "method": "quake_drt", "variant": variant, "scene": SCENE, "resolution": RES,
+               "frames": frames, "frame": i, "frame_ms": frame_ms[i] if isinstance(frame_ms, list) else frame_ms,
+               "ssim": np.nan, "info_shadow_rays": shadow, "rays": spp * (shadow + PRIMARY_RAYS),
+               "pixels": 3 * PIXELS, "work_taps": 8_000_000 if denoiser else 0, "work_points": 0,
+               "info_candidates_per_point": 50.0, "info_audit_pairs": 1000, "info_audit_missed": 0,
+               "info_audit_missed_energy": 0.0, "stage_primary_ms": 100.0, "stage_direct_ms": 50.0}
+        if gt and i == frames - 1:
+            row.update({f"info_{k}": v for k, v in gt.items()})
+        row.update(extra or {})
+        rows.append(row)
+    return d, rows
+
+
+@pytest.fixture
+def stored(tmp_path):
+    runs = [
+        _run(tmp_path, "no_culling", 4, 3000.0, 12_000_000, k=0, cull=False, denoiser=False, taa=False),
+        _run(tmp_path, "all_lights", 4, 1200.0, 4_000_000, k=0, denoiser=False, taa=False),
+        _run(tmp_path, "one_light", 8, 200.0, 40_000, gt={"gt_ssim": 0.30}, denoiser=False, taa=False),
+        _run(tmp_path, "one_light", 8, 260.0, 100_000, k=4, gt={"gt_ssim": 0.55}, denoiser=False, taa=False),
+        _run(tmp_path, "one_light", 8, 300.0, 600_000, k=16, gt={"gt_ssim": 0.75}, denoiser=False, taa=False),
+        _run(tmp_path, "one_light", 8, 800.0, 160_000, spp=4, gt={"gt_ssim": 0.55}, denoiser=False, taa=False),
+        _run(tmp_path, "denoiser_no_taa", 8, 600.0, 40_000,
+             gt={"gt_ssim": 0.80, "detail_near": 0.9, "detail_far": 0.5}, taa=False),
+        _run(tmp_path, "default", 8, 700.0, 40_000, gt={"gt_ssim": 0.84}),
+        _run(tmp_path, "default", 8, 760.0, 160_000, k=4, gt={"gt_ssim": 0.85}),
+        _run(tmp_path, "all_lights_taa", 8, 1300.0, 4_000_000, k=0, gt={"gt_ssim": 0.86}, denoiser=False),
+        _run(tmp_path, "denoised_no_culling", 8, 650.0, 40_000, gt={"gt_ssim": 0.70}, cull=False, taa=False),
+        _run(tmp_path, "all_lights", 30, [1200.0 + 400 * np.sin(i) for i in range(30)],
+             [4_000_000 + 2_000_000 * (i % 3) for i in range(30)], k=0, denoiser=False, taa=False),
+        _run(tmp_path, "default", 30, 700.0, [40_000 + 100 * (i % 2) for i in range(30)]),
+    ]
+    frames = pd.DataFrame([r for _, rows in runs for r in rows])
+    bench = {"asvgf": {"scene": SCENE, "backend": "embree", "repeats": 3, "fit": {"ms_per_mp": 6000.0,
+             "intercept_ms": 30.0, "r2": 0.999, "exponent": 0.95},
+             "rows": [{"resolution": [160, 90], "megapixels": 0.0144, "denoiser_ms": 99.0}]}}
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "quake_drt.json").write_text(json.dumps(bench))
+    return frames, [d for d, _ in runs], tmp_path
+
+
+def test01_claims_get_the_verdict_kind_that_fits(stored):
+    frames, dirs, root = stored
+    found = {c.id: c for c in report.claims(report.prepare(frames, dirs), report._load_bench(dirs, root))}
+    assert found["001.culling_speedup"].kind == verdicts.REPRODUCES  # 12 M against 4 M shadow rays
+    assert found["001.culling_speedup"].suite_value == pytest.approx(_work_ms(12e6) / _work_ms(4e6))
+    assert found["001.culling_exact"].kind == verdicts.REPRODUCES
+    assert found["001.spp4_cost"].kind == verdicts.BY_CONSTRUCTION
+    assert found["001.light_samples_cost"].kind == verdicts.DOES_NOT_REPRODUCE  # ~1.3x against 3x +- 50 %
+    assert found["001.light_samples_cost"].suite_value == pytest.approx(_work_ms(100_000) / _work_ms(40_000))
+    assert found["001.light_vs_traditional"].kind == verdicts.REPRODUCES  # 4 spp ~3.7x > 4 lights ~1.3x
+    assert found["001.samples_raise_quality"].kind == verdicts.REPRODUCES
+    assert found["001.denoised_samples_equal"].kind == verdicts.REPRODUCES  # 0.85 vs 0.84
+    assert found["001.all_lights_taa_vs_denoiser"].kind == verdicts.REPRODUCES  # 0.86 >= 0.80 - 0.02
+    assert found["001.taa_improves_denoiser"].kind == verdicts.REPRODUCES
+    assert found["001.culling_helps_denoiser"].kind == verdicts.REPRODUCES
+    assert found["001.far_shadows_lose_detail"].kind == verdicts.REPRODUCES
+    assert found["001.frame_time_spikes"].kind == verdicts.REPRODUCES
+    assert found["001.one_light_denoiser_faster"].kind == verdicts.REPRODUCES
+    assert found["001.denoiser_linear"].kind == verdicts.BY_CONSTRUCTION
+    assert found["001.denoiser_2ms"].kind == verdicts.NOT_MEASURABLE
+    assert all(c.setting.get("scene") for c in found.values() if c.kind != verdicts.NOT_MEASURABLE)
+
+
+def test02_a_bound_that_is_missed_does_not_reproduce(stored):
+    frames, dirs, root = stored
+    no_cull = frames["variant"] == "no_culling"
+    frames.loc[no_cull, "rays"] = 5_000_000 + PRIMARY_RAYS  # culling only saves a fifth of the rays
+    found = {c.id: c for c in report.claims(report.prepare(frames, dirs))}
+    c = found["001.culling_speedup"]
+    assert c.kind == verdicts.DOES_NOT_REPRODUCE and "short by" in c.explanation
+
+
+def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, tmp_path):
+    frames, dirs, root = stored
+    out = tmp_path / "report"
+    html = report.section(frames, dirs, out_dir=out, results_root=root)
+    assert "Seed 001" in html and "001.culling_speedup" in html and f"Scene {SCENE}, backend embree" in html
+    claims = json.loads((out / "quake_drt" / "claims.json").read_text())
+    assert {c["id"] for c in claims} >= {"001.culling_speedup", "001.denoiser_2ms"}
+    assert (out / "quake_drt" / "bench_asvgf.csv").is_file()
+
+
+def test04_no_runs_no_bench_still_builds():
+    html = report.section(pd.DataFrame(), [])
+    assert "No stored runs" in html and "No stored benchmark" in html

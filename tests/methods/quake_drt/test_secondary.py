@@ -1,0 +1,71 @@
+"""Secondary rays (seed 001 §6.5): with every effect off and all branches traced, the renderer's mirrors, glass
+and glossy surfaces match the suite's material kernel (suite.core.specular.render_materials), and one random
+branch per glass interface is an unbiased estimate of tracing both."""
+import numpy as np
+import pytest
+
+from suite.core.scene.builder import SceneBuilder
+from suite.core.scene.model import CameraKey
+from suite.core.specular import render_materials
+
+RES = (64, 48)
+
+
+@pytest.fixture
+def materials_scene():
+    b = SceneBuilder()
+    wall = b.add_material("wall", albedo=(0.7, 0.6, 0.5))
+    floor = b.add_material("floor", albedo=(0.3, 0.5, 0.6))
+    mirror = b.add_material("mirror", albedo=0.0, kind="mirror", specular_reflectance=(0.9, 0.9, 0.8))
+    glass = b.add_material("glass", albedo=0.0, kind="glass", int_ior=1.5)
+    metal = b.add_material("metal", albedo=0.0, kind="rough_conductor", roughness=0.2, conductor_eta=(0.2, 0.4, 1.4),
+                           conductor_k=(3.9, 2.4, 1.8), twosided=True)
+    b.add_box((-4, 0, -4), (4, 3, 4), wall, inward=True, open_faces=("-y",))
+    b.add_quad(((0, 0.0, 0), (0, 0, 4.0), (4.0, 0, 0)), floor)
+    b.add_quad(((1.5, 1.2, -2.5), (1.0, 0, 0.6), (0, 0.9, 0)), mirror)
+    b.add_sphere((-1.0, 0.8, -1.0), 0.7, 24, glass)
+    b.add_sphere((0.9, 0.5, 0.2), 0.45, 20, metal)
+    b.add_point_light("key", (0.5, 2.6, 1.5), intensity=(9.0, 8.5, 8.0))
+    b.add_point_light("fill", (-3.0, 2.0, 2.5), intensity=(3.0, 3.0, 4.0))
+    b.set_camera([CameraKey(0.0, (0.0, 1.5, 3.6), (0.0, 0.8, -1.0))], fov_deg=70.0, resolution=RES)
+    return b.build("materials")
+
+
+def test01_all_branches_without_effects_match_the_material_kernel(renderer, materials_scene):
+    scene = materials_scene
+    r = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene", max_depth=5)
+    img, raw = r.raw(1)
+    assert raw.info["secondary_rays"] > 0
+    ref = render_materials(scene, r.tracer, 0.0, RES, max_bounces=5).image
+    rel = np.abs(img - ref).max(axis=-1) / np.maximum(ref.max(axis=-1), 1e-3)
+    assert (rel < 1e-3).mean() > 0.995, f"{(rel >= 1e-3).mean():.4f} of pixels differ"
+    assert abs(img.mean() - ref.mean()) / ref.mean() < 1e-3
+
+
+def test02_one_random_branch_is_unbiased(renderer, materials_scene):
+    scene = materials_scene
+    both, _ = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene").raw(1)
+    r = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene", all_branches=False)
+    stack = r.raw_stack(96)
+    glass = np.std(stack, axis=0).max(axis=-1) > 0
+    assert glass.mean() > 0.02  # the glass sphere's pixels are noisy
+    n = len(stack)
+    blocks = stack.reshape(n, RES[1] // 4, 4, RES[0] // 4, 4, 3).mean(axis=(2, 4))
+    ref = both.reshape(RES[1] // 4, 4, RES[0] // 4, 4, 3).mean(axis=(1, 3))
+    se = blocks.std(axis=0, ddof=1) / np.sqrt(n)
+    noisy = se > 1e-6
+    z = (blocks.mean(axis=0) - ref)[noisy] / se[noisy]
+    assert (np.abs(z) > 4.5).mean() < 0.01
+    assert np.allclose(blocks.mean(axis=0)[~noisy], ref[~noisy], rtol=1e-4, atol=1e-6)
+
+
+def test03_glossy_reflections_blur_the_mirror_and_keep_other_pixels(renderer, materials_scene):
+    scene = materials_scene
+    sharp, raw = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene").raw(1)
+    glossy = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene", glossy_reflections=True,
+                      glossy_cone_deg=10.0).raw_stack(8).mean(axis=0)
+    mirror = raw.g.kind == 1
+    assert mirror.sum() > 20
+    assert not np.allclose(glossy[mirror], sharp[mirror], rtol=1e-3)
+    untouched = ~mirror & (raw.g.kind == 0)
+    assert np.allclose(glossy[untouched], sharp[untouched], rtol=1e-5, atol=1e-7)
