@@ -277,14 +277,9 @@ def default_scene() -> str:
 def run(args) -> dict:
     from suite.errors import UserError
     from suite.harness import runner
+    from suite.harness.cli import bench_parts
 
-    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown or not parts:
-        raise UserError(f"unknown benchmark part '{unknown[0] if unknown else args.parts}' "
-                        f"(choose from {', '.join(PARTS)})")
-    if args.backend not in runner.backend_names():
-        raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
+    parts = bench_parts(args.parts, PARTS, args.backend)
     if args.repeats < 1:
         raise UserError("--repeats must be >= 1")
     name = args.scene or default_scene()

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, esc, table_html
+from suite.harness.reporting import SectionFiles, load_bench, esc, table_html
 from suite.harness.verdicts import Claim, Tolerance
 
 SUBDIR = "quake_drt"
@@ -145,17 +145,6 @@ def _gt_value(df: pd.DataFrame, col: str) -> float:
         return float("nan")
     v = pd.to_numeric(df[f"info_{col}"], errors="coerce").dropna()
     return float(v.mean()) if len(v) else float("nan")
-
-
-def _load_bench(run_dirs, results_root) -> dict | None:
-    if results_root is None:
-        dirs = [Path(d) for d in run_dirs or []]
-        results_root = dirs[0].parent if dirs else None
-    path = Path(results_root) / "bench" / "quake_drt.json" if results_root is not None else None
-    try:
-        return json.loads(path.read_text()) if path is not None and path.is_file() else None
-    except (OSError, json.JSONDecodeError):
-        return None
 
 
 _NO_RUNS = ("<p><em>No stored runs for this part. <code>splitbench reproduce --preset quick</code> produces "
@@ -479,7 +468,7 @@ def claims(frames: pd.DataFrame, bench: dict | None = None) -> list[Claim]:
 def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None) -> str:
     frames = prepare(results_df, run_dirs)
     files = SectionFiles(out_dir, SUBDIR)
-    bench = _load_bench(run_dirs, results_root)
+    bench = load_bench("quake_drt", run_dirs, results_root)
     out = ["<h3>Seed 001 — quake_drt</h3>",
            "<p>Seed 001 (TU Wien thesis, chapter 6): distribution ray tracing of Quake III maps with PVS light "
            "culling, light subsampling (rt_numRandomDL), A-SVGF and TAA, all on one machine. Sources: <b>run</b> = "

@@ -449,13 +449,9 @@ def run(args) -> dict:
     from suite.harness import runner
     from suite.errors import UserError
 
-    parts = [p.strip() for p in args.parts.split(",") if p.strip()]
-    unknown = sorted(set(parts) - set(PARTS))
-    if unknown or not parts:
-        raise UserError(f"unknown benchmark part '{unknown[0] if unknown else args.parts}' "
-                        f"(choose from {', '.join(PARTS)})")
-    if args.backend not in runner.backend_names():
-        raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
+    from suite.harness.cli import bench_parts
+
+    parts = bench_parts(args.parts, PARTS, args.backend)
     for name in (args.scene, args.lights_scene):
         if not os.path.isfile(name) and name not in runner.scene_names():
             raise UserError(f"unknown scene '{name}'")

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, esc, figure, label_axes, slug, table_html
+from suite.harness.reporting import SectionFiles, load_bench, esc, figure, label_axes, slug, table_html
 from suite.harness.verdicts import Tolerance
 
 SUBDIR = "visibility_bitmap"
@@ -227,17 +227,6 @@ def _setting_caption(scene: str, backend: str, more: str = "") -> str:
 
 def _files_name(stem: str, scene: str, backend: str, ext: str) -> str:
     return f"{stem}_{slug(scene, backend)}.{ext}"
-
-
-def _load_bench(run_dirs, results_root) -> dict | None:
-    if results_root is None:
-        dirs = [Path(d) for d in run_dirs or []]
-        results_root = dirs[0].parent if dirs else None
-    path = Path(results_root) / "bench" / "visibility_bitmap.json" if results_root is not None else None
-    try:
-        return json.loads(path.read_text()) if path is not None and path.is_file() else None
-    except (OSError, json.JSONDecodeError):
-        return None
 
 
 _NO_RUNS = ("<p><em>No stored runs for this part. <code>splitbench reproduce --preset quick</code> produces "
@@ -900,7 +889,7 @@ def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None)
     several = frames[frames["clients"].fillna(1) > 1]
     frames = frames[frames["clients"].fillna(1) <= 1]
     files = SectionFiles(out_dir, SUBDIR)
-    bench = _load_bench(run_dirs, results_root)
+    bench = load_bench("visibility_bitmap", run_dirs, results_root)
     shown = (f" These runs: scenes {esc(', '.join(sorted(frames['scene'].unique())))}; backends "
              f"{esc(', '.join(sorted(frames['backend'].unique())))}." if not frames.empty else "")
     out = ["<h3>Seed 000 — visibility bitmap</h3>",

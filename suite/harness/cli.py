@@ -275,6 +275,19 @@ def bench_document(figures: dict) -> dict:
     return {**figures, **results.environment()}
 
 
+def bench_parts(text: str, known, backend: str) -> list[str]:
+    """A method bench's ``--parts`` list and ``--backend``, checked: each an error naming it when unknown."""
+    from suite.harness import runner
+
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    unknown = sorted(set(parts) - set(known))
+    if unknown or not parts:
+        raise UserError(f"unknown benchmark part '{unknown[0] if unknown else text}' (choose from {', '.join(known)})")
+    if backend not in runner.backend_names():
+        raise UserError(f"unknown backend '{backend}' (choose from {', '.join(runner.backend_names())})")
+    return parts
+
+
 def bench_names() -> list[str]:
     """``tracing``, ``core``, ``clients`` plus every method folder that ships a bench.py."""
     from suite.harness import registry

@@ -18,6 +18,19 @@ from suite import fileio
 COUNT_WORDS = ("bytes", "pixel", "rays")
 
 
+def load_bench(name: str, run_dirs, results_root) -> dict | None:
+    """The benchmark document ``<results>/bench/<name>.json`` (None when absent or unreadable); without
+    ``results_root`` the results root is the parent of the first run directory."""
+    if results_root is None:
+        dirs = [Path(d) for d in run_dirs or []]
+        results_root = dirs[0].parent if dirs else None
+    path = Path(results_root) / "bench" / f"{name}.json" if results_root is not None else None
+    try:
+        return json.loads(path.read_text()) if path is not None and path.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
 def esc(value) -> str:
     """HTML-escaped text of any value."""
     return html.escape(str(value))

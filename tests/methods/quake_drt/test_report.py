@@ -73,7 +73,7 @@ def stored(tmp_path):
 
 def test01_claims_get_the_verdict_kind_that_fits(stored):
     frames, dirs, root = stored
-    found = {c.id: c for c in report.claims(report.prepare(frames, dirs), report._load_bench(dirs, root))}
+    found = {c.id: c for c in report.claims(report.prepare(frames, dirs), report.load_bench("quake_drt", dirs, root))}
     assert found["001.culling_speedup"].kind == verdicts.REPRODUCES  # 12 M against 4 M shadow rays
     assert found["001.culling_speedup"].suite_value == pytest.approx(_work_ms(12e6) / _work_ms(4e6))
     assert found["001.culling_exact"].kind == verdicts.REPRODUCES
