@@ -32,7 +32,7 @@ import numpy as np
 from suite.errors import UserError
 from suite.harness.method import Method
 
-from methods.video_stream import video
+from suite.core import video
 
 STATUSES = ("ok", "damaged", "frozen")
 

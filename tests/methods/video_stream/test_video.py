@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from methods.video_stream import video
+from suite.core import video
 from methods.video_stream.method import VideoStream, _has_idr
 from suite.errors import UserError
 

@@ -1,4 +1,7 @@
-"""H.264 / HEVC low-latency video for the streaming baseline: encoder, RTP-like packetisation, decoder.
+"""H.264 / HEVC low-latency video: encoder, RTP-like packetisation, decoder.
+
+Used by the video-streaming baseline, by streamed placements of local renderers and by any method that sends
+an image as video.
 
 The encoder is x264/x265 through PyAV with cloud-gaming settings: no B-frames, ``tune=zerolatency`` (no
 lookahead, one packet per frame), a fixed IDR interval or periodic intra refresh, and either a target bitrate
