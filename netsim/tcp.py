@@ -571,7 +571,13 @@ class TcpConnection:
                 next_ack_s, cum, ack_seg = pending_ack_s + delack_timeout + ack_delay, pending_cum, pending_seg
             else:
                 next_ack_s = math.inf
-            next_data_s = seg_avail_s[nxt] if (nxt < n and nxt == una and seg_avail_s[nxt] > t) else math.inf
+            # New data is an event of its own whenever the window has room for it: on an idle connection, and
+            # also while earlier segments are in flight (a small message must not wait for the previous one's
+            # ACK; the topology engine sends it on arrival too). In recovery, ACKs clock the sending.
+            next_data_s = math.inf
+            if nxt < n and seg_avail_s[nxt] > t and (nxt == una or (
+                    not in_recovery and nxt - una + 1 <= (cc.cwnd if cc.cwnd < rwnd_segments else rwnd_segments))):
+                next_data_s = seg_avail_s[nxt]
             timer_s = rto_deadline if una < nxt else math.inf
             event_s = next_ack_s if next_ack_s < timer_s else timer_s
             if next_data_s < event_s:
@@ -686,9 +692,9 @@ class TcpConnection:
                 nxt += 1
                 rto_deadline = t + self.rto_s
             else:
-                # Idle until the next message is handed to the socket.
+                # The next message is handed to the socket (slow-start restart only after a truly idle spell).
                 idle_since = max(last_ack_s, send_time[nxt - 1] if nxt else t)
-                if config.slow_start_restart and next_data_s - idle_since > self.rto_s:
+                if config.slow_start_restart and nxt == una and next_data_s - idle_since > self.rto_s:
                     cc.cwnd = min(cc.cwnd, cc.iw)
                 t = next_data_s
 

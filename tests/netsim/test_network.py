@@ -45,3 +45,19 @@ def test_describe_is_json_and_names_the_seed():
     description = netsim.make_network("bw=50mbps,delay=17ms,loss=0.1%", seed=5).describe()
     assert json.loads(json.dumps(description))["seed"] == 5
     assert description["down"]["bandwidth_mbps"] == 50
+
+
+def test_a_small_message_does_not_wait_for_the_previous_ones_ack():
+    # A 64-byte pose every 10 ms over a 10 ms path: with TCP_NODELAY each one leaves when it is written (the
+    # window has room), so every pose arrives one propagation delay plus serialisation later, not after the
+    # previous pose's ACK. The single-path engine and the topology engine agree.
+    net = netsim.make_network("bw=50mbps,delay=10ms", seed=0)
+    single = [net.send(64, direction="up", protocol="tcp", at_s=0.010 * i) for i in range(8)]
+    topo = netsim.make_topology(access="bw=50mbps,delay=10ms", server="bw=10gbps,delay=0ms", clients=1, seed=0)
+    joint = []
+    for i in range(8):
+        joint.append(topo.send(64, client=0, direction="up", protocol="tcp", at_s=0.010 * i))
+        topo.advance(0.010 * i)
+    topo.advance(1.0)
+    for d in single + joint:
+        assert 10.0 <= 1e3 * (d.arrival_s - d.sent_s) < 11.5
