@@ -7,7 +7,9 @@ such as ``dabrovic_sponza``, found on the scene search path (:mod:`suite.core.sc
 """
 from __future__ import annotations
 
+import hashlib
 import os
+from pathlib import Path
 
 from suite.errors import UserError
 from suite.core.scene.model import (CameraKey, CameraPath, CameraPose, LightAnimation, Material, PointLight,
@@ -36,6 +38,29 @@ def list_scenes() -> dict[str, str]:
     scenes.update(list_obj_scenes())
     scenes.update(list_q3_scenes())
     return scenes
+
+
+def source_digest(spec) -> str:
+    """A content hash of the files a scene spec loads from ('' for embedded scenes, which the code defines), so
+    that a run's identity changes when its scene data does. A missing file raises the same error as load()."""
+    spec = os.fspath(spec)
+    from suite.core.scene.embedded import EMBEDDED
+
+    if spec in EMBEDDED:
+        return ""
+    from suite.core.scene.q3 import is_q3_spec
+    from suite.core.scene.q3.loader import source_digest as q3_digest
+
+    if is_q3_spec(spec):
+        return q3_digest(spec)
+    from suite.core.scene.obj import is_obj_spec
+    from suite.core.scene.obj.loader import source_digest as obj_digest
+
+    if is_obj_spec(spec):
+        return obj_digest(spec)
+    if os.path.isfile(spec):
+        return hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+    return ""
 
 
 def load(spec) -> Scene:

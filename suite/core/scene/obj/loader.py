@@ -137,6 +137,19 @@ def resolve(spec: str, sidecar: str | os.PathLike | None = None) -> tuple[str, P
     return path.stem, path, sc
 
 
+def source_digest(spec) -> str:
+    """A content hash of what a spec loads from: the OBJ's bytes and its sidecar's text. (Material and texture
+    files are checked against the conversion cache's recorded hashes when the scene loads.)"""
+    name, path, sc = resolve(os.fspath(spec))
+    try:
+        sha = _file_sha(path)
+    except OSError as exc:
+        raise UserError(f"cannot read OBJ file '{path}': {exc.strerror or exc}") from None
+    if sc is None:
+        sc = sidecar_for(path, sha)
+    return hashlib.sha256(f"{sha}|{sc.text_sha256 if sc else '-'}".encode()).hexdigest()
+
+
 def load_obj(spec, *, sidecar=None, max_texture_size: int = mtlmod.DEFAULT_MAX_TEXTURE_SIZE, strict: bool = False,
              use_cache: bool = True) -> ObjScene:
     """Loads an OBJ scene (module docstring). ``sidecar`` overrides the sidecar lookup for a path spec;

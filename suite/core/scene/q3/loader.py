@@ -155,6 +155,15 @@ def cache_dir() -> Path:
     return Path(root) / "scenes" / "q3"
 
 
+def source_digest(spec: str) -> str:
+    """A content hash of what a spec loads from: the map's BSP bytes and the archives' fingerprint (names, sizes
+    and CRC-32s of every member, so a changed texture or shader file changes it too)."""
+    _, _, data, _, fs = resolve(spec)
+    key = hashlib.sha256(hashlib.sha256(data).digest())
+    key.update(fs.fingerprint().encode())
+    return key.hexdigest()
+
+
 def load_q3(spec: str, *, unit_m: float | None = None, patch_level: int | None = None,
             light_scale: float | None = None, max_texture_size: int | None = None,
             use_cache: bool = True) -> Q3Scene:
