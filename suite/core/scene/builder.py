@@ -401,3 +401,23 @@ class CameraScript:
             self.t_s += duration_s / steps
             self._key()
         return self
+
+    def play(self, moves, where: str) -> "CameraScript":
+        """Applies moves written as data (TOML sidecars, map camera scripts): each a table with ``hold = s``, or
+        ``turn = deg, s = ..`` (optional ``pitch``, ``walk``), or ``walk = m, s = ..`` (optional ``strafe``,
+        ``rise``). A malformed move is a UserError naming ``where`` and the move's index."""
+        for i, move in enumerate(moves):
+            try:
+                if "hold" in move:
+                    self.hold(float(move["hold"]))
+                elif "turn" in move:
+                    self.turn(float(move["turn"]), float(move["s"]), pitch_deg=float(move.get("pitch", 0.0)),
+                              walk_m=float(move.get("walk", 0.0)))
+                elif "walk" in move:
+                    self.walk(float(move["walk"]), float(move["s"]), strafe_m=float(move.get("strafe", 0.0)),
+                              rise_m=float(move.get("rise", 0.0)))
+                else:
+                    raise KeyError("walk, turn or hold")
+            except (KeyError, TypeError, ValueError) as exc:
+                raise UserError(f"{where} move {i} {move!r} is malformed ({exc})") from None
+        return self

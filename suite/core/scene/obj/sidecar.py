@@ -215,20 +215,7 @@ def camera_path(sc: Sidecar):
     cam = sc.camera
     pos = _vec(sc.path, "[camera] position", cam["position"])
     script = CameraScript(pos, yaw_deg=float(cam.get("yaw_deg", 0.0)), pitch_deg=float(cam.get("pitch_deg", 0.0)))
-    for i, move in enumerate(cam.get("moves", [])):
-        try:
-            if "hold" in move:
-                script.hold(float(move["hold"]))
-            elif "turn" in move:
-                script.turn(float(move["turn"]), float(move["s"]), pitch_deg=float(move.get("pitch", 0.0)),
-                            walk_m=float(move.get("walk", 0.0)))
-            elif "walk" in move:
-                script.walk(float(move["walk"]), float(move["s"]), strafe_m=float(move.get("strafe", 0.0)),
-                            rise_m=float(move.get("rise", 0.0)))
-            else:
-                raise KeyError("walk, turn or hold")
-        except (KeyError, TypeError, ValueError) as exc:
-            raise _err(sc.path, f"[camera] move {i} {move!r} is malformed ({exc})") from None
+    script.play(cam.get("moves", []), f"sidecar '{sc.path}': [camera]")
     res = cam.get("resolution", [320, 180])
     return CameraPath(keys=script.keys, fov_deg=float(cam.get("fov_deg", 75.0)),
                       resolution=(int(res[0]), int(res[1])), fps=float(cam.get("fps", 30.0)))

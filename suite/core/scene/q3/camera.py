@@ -103,20 +103,7 @@ def scripted_path(name: str, script: dict, spawns: np.ndarray, tris: np.ndarray,
     eye = spawn_eye(tris, spawns[k, :3], unit_m)
     yaw = spawns[k, 3] - 90.0 + float(script.get("yaw_deg", 0.0))  # Quake angle 0 = +x; CameraScript yaw 0 = -z
     cam = CameraScript(eye, yaw_deg=yaw, pitch_deg=float(script.get("pitch_deg", 0.0)))
-    for i, move in enumerate(script.get("moves", [])):
-        try:
-            if "hold" in move:
-                cam.hold(float(move["hold"]))
-            elif "turn" in move:
-                cam.turn(float(move["turn"]), float(move["s"]), pitch_deg=float(move.get("pitch", 0.0)),
-                         walk_m=float(move.get("walk", 0.0)))
-            elif "walk" in move:
-                cam.walk(float(move["walk"]), float(move["s"]), strafe_m=float(move.get("strafe", 0.0)),
-                         rise_m=float(move.get("rise", 0.0)))
-            else:
-                raise KeyError("walk, turn or hold")
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"camera path of '{name}', move {i}: {move!r} is malformed ({exc})") from None
+    cam.play(script.get("moves", []), f"camera path of '{name}',")
     path = CameraPath(keys=cam.keys, fov_deg=float(script.get("fov_deg", DEFAULT_FOV_DEG)),
                       resolution=tuple(script.get("resolution", DEFAULT_RESOLUTION)),
                       fps=float(script.get("fps", DEFAULT_FPS)))
