@@ -13,6 +13,7 @@ its noise (see tests/core/test_direct_lighting.py).
 """
 from __future__ import annotations
 
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -258,11 +259,17 @@ def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: 
 
         img = dshade.direct_lighting(scene, dg, tracer, t_s, area_samples=area_samples, seed=seed)
         return img if dg is g else img.to_host()
+    return compose_direct(sys.modules[__name__], scene, g, tracer, t_s, area_samples, seed)
+
+
+def compose_direct(kernels, scene, g, tracer, t_s: float, area_samples: int, seed: int):
+    """Emission + point lights (hard shadows) + area lights (soft shadows) from one set of kernels: this module's
+    (host) or :mod:`suite.core.device.shading`'s (device), which share these names and this composition."""
     lights = scene.lights_at(t_s)
     min_d = min_light_distance(scene)
-    vis = point_light_visibility(g, lights, tracer)
-    rgb = shade_point_lights(g, lights, vis, min_distance=min_d)
+    vis = kernels.point_light_visibility(g, lights, tracer)
+    rgb = kernels.shade_point_lights(g, lights, vis, min_distance=min_d)
     area = AreaLights(scene, t_s)
     if len(area):
-        rgb = rgb + area_light_radiance(g, area, tracer, samples=area_samples, seed=seed, min_distance=min_d)
+        rgb = rgb + kernels.area_light_radiance(g, area, tracer, samples=area_samples, seed=seed, min_distance=min_d)
     return rgb

@@ -17,11 +17,12 @@ uint32 words, so a received bitmap of any layout is shaded without unpacking.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 
-from suite.core.shading import INV_PI, SHADOW_TMAX_SCALE, AreaLights, min_light_distance
+from suite.core.shading import INV_PI, SHADOW_TMAX_SCALE, AreaLights, compose_direct
 
 
 @dataclass
@@ -395,11 +396,4 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
 
 def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: int = 0) -> DeviceImage:
     """Emission + point lights (hard shadows) + area lights (soft shadows) on the device."""
-    lights = scene.lights_at(t_s)
-    min_d = min_light_distance(scene)
-    vis = point_light_visibility(g, lights, tracer)
-    rgb = shade_point_lights(g, lights, vis, min_distance=min_d)
-    area = AreaLights(scene, t_s)
-    if len(area):
-        rgb = rgb + area_light_radiance(g, area, tracer, samples=area_samples, seed=seed, min_distance=min_d)
-    return rgb
+    return compose_direct(sys.modules[__name__], scene, g, tracer, t_s, area_samples, seed)
