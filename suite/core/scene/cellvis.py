@@ -128,16 +128,6 @@ class CellVisibility(ClusterPVS):
 
     leaf_of = cluster_of
 
-    # --- PVS ----------------------------------------------------------------------------------------
-    def pvs(self, cluster: int) -> np.ndarray:
-        """(C,) bool: cells potentially visible from ``cluster`` (all False for -1)."""
-        c = int(cluster)
-        if c < 0:
-            return np.zeros(self.n_clusters, bool)
-        if c >= self.n_clusters:
-            raise UserError(f"cluster {c} is out of range 0..{self.n_clusters - 1}")
-        return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
-
     # --- storage ------------------------------------------------------------------------------------
     ARRAYS = ("origin", "dims", "pvs_rows", "triangle_cluster_offsets", "triangle_cluster_ids", "triangle_cluster")
 

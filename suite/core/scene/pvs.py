@@ -1,7 +1,7 @@
 """What every cluster visibility shares (a BSP's, :class:`suite.core.scene.q3.Q3Visibility`, and the computed
 one, :class:`suite.core.scene.cellvis.CellVisibility`): the PVS as packed bit rows, and triangles by cluster.
 
-A subclass provides ``n_clusters``, ``num_triangles``, ``pvs(cluster)``, ``pvs_rows`` ((C, ceil(C/8)) uint8,
+A subclass provides ``n_clusters``, ``num_triangles``, ``pvs_rows`` ((C, ceil(C/8)) uint8,
 little-endian bit order, or None when every cluster sees every other), ``triangle_cluster_offsets`` and
 ``triangle_cluster_ids`` (CSR lists of the clusters each triangle is in), ``triangle_cluster`` (one per triangle)
 and ``offset`` (the scene-frame translation), is a dataclass, and sets ``self._pvs_matrix = None``.
@@ -11,6 +11,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from suite.errors import UserError
 
 
 class ClusterPVS:
@@ -27,6 +29,18 @@ class ClusterPVS:
         offsets = np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64)
         return dataclasses.replace(self, triangle_cluster_offsets=offsets, triangle_cluster_ids=ids,
                                    triangle_cluster=self.triangle_cluster[keep])
+
+    def pvs(self, cluster: int) -> np.ndarray:
+        """(C,) bool: clusters potentially visible from ``cluster`` (the stored row; all False for -1, all True
+        without stored rows)."""
+        c = int(cluster)
+        if c < 0:
+            return np.zeros(self.n_clusters, bool)
+        if c >= self.n_clusters:
+            raise UserError(f"cluster {c} is out of range 0..{self.n_clusters - 1}")
+        if self.pvs_rows is None:
+            return np.ones(self.n_clusters, bool)
+        return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
 
     def pvs_matrix(self) -> np.ndarray:
         """(C, C) bool, row c = ``pvs(c)``."""

@@ -117,17 +117,6 @@ class Q3Visibility(ClusterPVS):
     def has_vis(self) -> bool:
         return self.pvs_rows is not None
 
-    def pvs(self, cluster: int) -> np.ndarray:
-        """(C,) bool: clusters potentially visible from ``cluster`` (the stored row; all False for -1)."""
-        c = int(cluster)
-        if c < 0:
-            return np.zeros(self.n_clusters, bool)
-        if c >= self.n_clusters:
-            raise UserError(f"cluster {c} is out of range 0..{self.n_clusters - 1}")
-        if self.pvs_rows is None:
-            return np.ones(self.n_clusters, bool)
-        return np.unpackbits(self.pvs_rows[c], bitorder="little")[:self.n_clusters].astype(bool)
-
     # --- storage ------------------------------------------------------------------------------------
     ARRAYS = ("planes_normal", "planes_dist", "node_plane", "node_children", "leaf_cluster", "leaf_area",
               "leaf_mins_q3", "leaf_maxs_q3", "triangle_cluster_offsets", "triangle_cluster_ids", "triangle_cluster")
