@@ -1,0 +1,232 @@
+"""``splitbench bench layered_pvs``: server stages against the backend's raw ray rate (``<stage>_ratio``: the time
+the backend alone takes for the stage's own rays, replayed, over the stage's time; 1 = the stage is pure tracing,
+below it the share of shading, sampling and bookkeeping in numpy), codec throughput, client
+reprojection cost, how they grow with pixels and layers, and the report's images (layers, packed texture, client
+frame, difference). Stores ``<results>/bench/layered_pvs.json`` and PNGs in ``<results>/bench/layered_pvs/``.
+
+One update is made outside the harness with :class:`LocalContext` (stages timed with ``perf_counter``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from suite import fileio
+from suite.errors import UserError
+
+DEFAULT_PARAMS = {"update_fps": 5.5, "client_fps": 60.0, "max_in_flight": 1, "layers": 4, "full_layers": 1,
+                  "tile": 8, "order": "block", "fov_enlarge": 1.1, "corner_speed": 0.02, "spp": 2, "max_depth": 4,
+                  "rr_depth": 3, "denoise_iterations": 5, "relocation": True, "colour_fill": True,
+                  "video_crf": 25.0, "video_preset": "veryfast", "jpeg_quality": 25, "mask_codec": "quadtree",
+                  "subset_peeling": False, "key_interval": 10, "depth_tol": 0.01, "hole_fill": False,
+                  "exposure": 1.0}
+
+
+class RecordingTracer:
+    """Wraps a tracer: forwards every query and keeps its rays, to replay them on the raw backend."""
+
+    def __init__(self, tracer):
+        self.t = tracer
+        self.scene, self.shift, self.counters = tracer.scene, getattr(tracer, "shift", None), tracer.counters
+        self.log = []
+
+    def intersect(self, o, d, tmin=0.0, tmax=np.inf):
+        self.log.append(("i", np.array(o), np.array(d), np.array(tmin), tmax))
+        return self.t.intersect(o, d, tmin, tmax)
+
+    def occluded(self, o, d, tmin=0.0, tmax=np.inf):
+        self.log.append(("o", np.array(o), np.array(d), np.array(tmin), np.array(tmax)))
+        return self.t.occluded(o, d, tmin, tmax)
+
+
+class LocalContext:
+    """The parts of the harness Context the method uses, without the timeline: stages timed by perf_counter."""
+
+    def __init__(self, scene, tracer, t_s, resolution, index=0, pose=None, seed=0):
+        self.scene, self.tracer, self.t_s, self.index = scene, tracer, t_s, index
+        self.client, self.resolution, self.rng = 0, tuple(resolution), np.random.default_rng(seed)
+        self._pose = pose
+        self.prev_t_s = None
+        self.sent, self.outputs, self.stage_ms, self.stage_rays, self.stage_log = {}, {}, {}, {}, {}
+
+    @contextmanager
+    def stage(self, name, place, after=None):
+        rec = SimpleNamespace(pixels=0, count=lambda **kw: None)
+        c = getattr(self.tracer, "counters", {})
+        r0 = sum(c.values()) if c else 0
+        log = getattr(self.tracer, "log", None)
+        l0 = len(log) if log is not None else 0
+        t0 = time.perf_counter()
+        yield rec
+        self.stage_ms[name] = 1e3 * (time.perf_counter() - t0)
+        if log is not None:
+            self.stage_log[name] = log[l0:]
+        self.stage_rays[name] = (sum(c.values()) if c else 0) - r0
+
+    def latest_pose(self):
+        return self.t_s, self._pose
+
+    def send(self, name, payload, direction="down"):
+        self.sent[name] = bytes(payload)
+
+    def record(self, **kw):
+        self.outputs.update(kw)
+
+
+def client_context(pose, fov_deg, t_s, resolution, index=0):
+    cam = SimpleNamespace(pose_at=lambda t: pose, fov_deg=fov_deg)
+    return LocalContext(SimpleNamespace(camera=cam), None, t_s, resolution, index)
+
+
+def delivered_update(payload: bytes, index: int, t_s: float, new: bool = True):
+    from suite.harness.method import Delivered, Update
+
+    return Update(index, t_s, {"update": Delivered("update", payload, len(payload), [], True, 0.0, 0.0)}, new)
+
+
+def one_update(scene, tracer, params, resolution, t_s, later_s):
+    """Server update at ``t_s``, then the client's frame at ``later_s``; returns contexts, client and image."""
+    from methods.layered_pvs.method import LayeredPVS
+
+    srv, cli = LayeredPVS(params), LayeredPVS(params)
+    srv.restore(srv.prepare(scene, tracer))
+    ctx = LocalContext(scene, tracer, t_s, resolution, 0, scene.camera.pose_at(t_s))
+    srv.server_update(ctx)
+    cctx = client_context(scene.camera.pose_at(later_s), scene.camera.fov_deg, later_s, resolution)
+    t0 = time.perf_counter()
+    img = cli.client_frame(cctx, delivered_update(ctx.sent["update"], 0, t_s))
+    cctx.stage_ms["first_frame_total"] = 1e3 * (time.perf_counter() - t0)
+    return ctx, cctx, cli, img
+
+
+def _raw_rate(tracer, log) -> tuple[int, float]:
+    rays, t0 = 0, time.perf_counter()
+    for kind, o, d, tmin, tmax in log:
+        (tracer.intersect if kind == "i" else tracer.occluded)(o, d, tmin, tmax)
+        rays += len(d)
+    return rays, time.perf_counter() - t0
+
+
+def server_rows(scene, tracer, params, resolutions, layer_counts, t_s):
+    rows = []
+    for res in resolutions:
+        for L in layer_counts:
+            rec = RecordingTracer(tracer)
+            ctx, cctx, cli, _ = one_update(scene, rec, {**params, "layers": L}, res, t_s, t_s + 0.1)
+            per_stage = {}
+            for stage in ("pvs", "layers", "path_trace"):
+                n, raw_s = _raw_rate(tracer, ctx.stage_log[stage])
+                per_stage[f"{stage}_rays"] = n
+                per_stage[f"{stage}_ratio"] = (raw_s * 1e3) / ctx.stage_ms[stage] if n else float("nan")
+            n_rays = sum(per_stage[f"{s}_rays"] for s in ("pvs", "layers", "path_trace"))
+            rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, **per_stage,
+                         **{f"{k}_ms": round(v, 2) for k, v in ctx.stage_ms.items()},
+                         "client_decode_ms": cctx.stage_ms.get("decode"), "client_peel_ms": cctx.stage_ms.get("peel"),
+                         "client_render_ms": cctx.stage_ms.get("render"),
+                         "render_ms_per_mpix": cctx.stage_ms.get("render") / (res[0] * res[1] / 1e6),
+                         "update_bytes": len(ctx.sent["update"])})
+    return rows
+
+
+def codec_rows(size: int = 512, seed: int = 0):
+    from methods.layered_pvs import codecs
+    from methods.layered_pvs.method import jpeg_decode, jpeg_encode
+
+    rng = np.random.default_rng(seed)
+    mask = (rng.random((size, size)) < 0.1).astype(np.int8)
+    mask[:, :size // 2] = 1
+    mask[rng.random(mask.shape) < 0.2] = codecs.ANY
+    img = (rng.random((size // 2, size, 3)) * 40 + np.linspace(0, 200, size)[None, :, None]).astype(np.uint8)
+    n_tri = 60 * size
+    positions = rng.random((n_tri // 2, 3)).astype(np.float32)
+    faces = rng.integers(0, n_tri // 2, (n_tri, 3)).astype(np.int64)
+    cases = {
+        "huffman": (lambda: codecs.huffman_encode(img.tobytes()), codecs.huffman_decode, img.nbytes),
+        "quadtree_mask": (lambda: codecs.quadtree_encode(mask), codecs.quadtree_decode, mask.size),
+        "rle_huffman_mask": (lambda: codecs.binary_rle_encode(mask), codecs.binary_rle_decode, mask.size),
+        "jpeg_q25_444": (lambda: jpeg_encode(img, 25), lambda b: jpeg_decode(b, img.shape), img.nbytes),
+        "pvs_patch": (lambda: codecs.pvs_patch_encode(codecs.PVSState(), np.arange(n_tri), faces, positions)[0],
+                      lambda b: codecs.pvs_patch_decode(codecs.PVSState(), b), n_tri * 36),
+    }
+    rows = []
+    for name, (enc, dec, raw) in cases.items():
+        t0 = time.perf_counter()
+        data = enc()
+        t1 = time.perf_counter()
+        dec(data)
+        t2 = time.perf_counter()
+        rows.append({"codec": name, "input_bytes": raw, "output_bytes": len(data),
+                     "encode_MB_per_s": raw / 1e6 / (t1 - t0), "decode_MB_per_s": raw / 1e6 / (t2 - t1)})
+    return rows
+
+
+def write_images(out_dir: Path, ctx, cli, img, reference) -> list:
+    from PIL import Image
+
+    from suite.core import video
+    from methods.layered_pvs import packing
+
+    dec = cli._client["decoded"]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    L = dec.depth.shape[0]
+    h, w = dec.view.height, dec.view.width
+    yy, xx = np.mgrid[0:h, 0:w]
+    strips = []
+    for k in range(min(L, 3)):
+        tx, ty, st = packing.slot_texel(dec.layout, xx, yy, np.full_like(xx, k))
+        layer = np.where((st & (k < dec.counts))[..., None], dec.texture[ty, tx], 0).astype(np.uint8)
+        strips.append(layer)
+    Image.fromarray(np.concatenate(strips, axis=1)).save(out_dir / "layers.png")
+    Image.fromarray(dec.texture).save(out_dir / "packed_texture.png")
+    Image.fromarray(video.to_video(img, 1.0)).save(out_dir / "client_frame.png")
+    diff = np.abs(video.to_video(img, 1.0).astype(np.int16) - video.to_video(reference, 1.0).astype(np.int16))
+    Image.fromarray(np.clip(diff * 4, 0, 255).astype(np.uint8)).save(out_dir / "difference_x4.png")
+    names += ["layers.png", "packed_texture.png", "client_frame.png", "difference_x4.png"]
+    return names
+
+
+def run(argv=None) -> dict:
+    ap = argparse.ArgumentParser(prog="splitbench bench layered_pvs")
+    ap.add_argument("--scene", default="dabrovic_sponza")
+    ap.add_argument("--backend", default="embree")
+    ap.add_argument("--resolutions", default="96x54,160x90")
+    ap.add_argument("--layers", default="2,4,8")
+    ap.add_argument("--codec-size", type=int, default=512, help="side of the codec benchmark's mask (pixels)")
+    ap.add_argument("--out", default="results")
+    args = ap.parse_args(argv)
+    from suite.harness import runner
+
+    try:
+        res = [tuple(int(x) for x in r.split("x")) for r in args.resolutions.split(",")]
+        layer_counts = [int(x) for x in args.layers.split(",")]
+    except ValueError:
+        raise UserError(f"bad --resolutions '{args.resolutions}' or --layers '{args.layers}'") from None
+    scene = runner.load_scene(args.scene)
+    tracer = runner.make_tracer(args.backend, scene)
+    from methods.layered_pvs.method import _warm_up
+
+    _warm_up()
+    t_s = 0.5 * scene.camera.duration_s
+    out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS,
+           "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s),
+           "codecs": codec_rows(args.codec_size)}
+    # Images at the largest resolution: the client 0.15 s after the update, against the update rendered there.
+    big = res[-1]
+    ctx, _, cli, img = one_update(scene, tracer, DEFAULT_PARAMS, big, t_s, t_s + 0.15)
+    ctx2, _, _, ref = one_update(scene, tracer, DEFAULT_PARAMS, big, t_s + 0.15, t_s + 0.15)
+    bench_dir = Path(args.out) / "bench"
+    out["images"] = write_images(bench_dir / "layered_pvs", ctx, cli, img, ref)
+    out["client"] = [{"resolution": r["resolution"], "layers": r["layers"], "render_ms_per_mpix":
+                      r["render_ms_per_mpix"], "peel_ms": r["client_peel_ms"]} for r in out["server"]]
+    from suite.harness.cli import bench_document
+
+    doc = bench_document(out)
+    fileio.write_text(bench_dir / "layered_pvs.json", json.dumps(doc, indent=1, default=float) + "\n")
+    return out

@@ -1,0 +1,313 @@
+"""Packing of depth layers into one texture (seed 002 §4.1.3-§4.1.5, Fig. 4.4, Fig. 4.7, Algorithms 2 and 4.1).
+
+Vocabulary of the thesis: a layer is divided into ``tile`` x ``tile`` tiles; a *block* is the column of tiles at one
+position through all layers. A pixel's fragments occupy *slots* 0, 1, ... of its block (slot = layer after fragment
+relocation). The first ``full_layers`` slots are stored whole, one under another at the top of the texture; the
+other slots are stored as tiles, only for blocks that use them (``block counts`` = tiles per block), in
+block-first or layer-first order, row-major in the texture (Fig. 4.7).
+
+Arrays: slot arrays are (L, H, W) with H, W multiples of ``tile``; colours are uint8 RGB.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from methods.layered_pvs.codecs import ANY
+
+ORDERS = ("block", "layer")
+
+
+# ------------------------------------------------------------------------------------------ relocation
+
+def _neighbour_views(a: np.ndarray, tile: int, fill):
+    """The 4-neighbours of every pixel of (..., H, W) ``a`` restricted to the same block: (up, down, left, right),
+    ``fill`` where the neighbour is outside the block."""
+    h, w = a.shape[-2:]
+    out = []
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        b = np.full_like(a, fill)
+        ys = slice(max(dy, 0), h + min(dy, 0))
+        yd = slice(max(-dy, 0), h + min(-dy, 0))
+        xs = slice(max(dx, 0), w + min(dx, 0))
+        xd = slice(max(-dx, 0), w + min(-dx, 0))
+        b[..., yd, xd] = a[..., ys, xs]
+        y = np.arange(h)
+        x = np.arange(w)
+        same_y = ((y + dy) // tile == y // tile) & (y + dy >= 0) & (y + dy < h)
+        same_x = ((x + dx) // tile == x // tile) & (x + dx >= 0) & (x + dx < w)
+        b[..., ~(same_y[:, None] & same_x[None, :])] = fill
+        out.append(b)
+    return out
+
+
+def block_layer_counts(occupied: np.ndarray, tile: int) -> np.ndarray:
+    """(By, Bx): layers a block uses = the largest number of slots any of its pixels needs."""
+    L, h, w = occupied.shape
+    used = np.where(occupied, np.arange(1, L + 1)[:, None, None], 0).max(axis=0)
+    return used.reshape(h // tile, tile, w // tile, tile).max(axis=(1, 3))
+
+
+_relocate_kernel = None
+
+
+def _kernel():
+    global _relocate_kernel
+    if _relocate_kernel is None:
+        import numba
+
+        @numba.njit(cache=True, nogil=True)
+        def run(slot_frag, slot_depth, n_block, tile, max_rounds):
+            L, h, w = slot_frag.shape
+            moved = np.zeros((h, w), np.bool_)
+            for by in range(h // tile):
+                for bx in range(w // tile):
+                    nb = n_block[by, bx]
+                    y0, x0 = by * tile, bx * tile
+                    for k in range(nb - 1):
+                        for _ in range(max_rounds):
+                            any_move = False
+                            moved[y0:y0 + tile, x0:x0 + tile] = False
+                            # Decide on the slot state at the start of the round (one GPU pass in the thesis).
+                            for y in range(y0, y0 + tile):
+                                for x in range(x0, x0 + tile):
+                                    if slot_frag[k, y, x] < 0:
+                                        continue
+                                    remaining = 0
+                                    for s in range(k, L):
+                                        if slot_frag[s, y, x] >= 0:
+                                            remaining += 1
+                                    if remaining >= nb - k:
+                                        continue
+                                    d = slot_depth[k, y, x]
+                                    closer = False
+                                    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                                        yy, xx = y + dy, x + dx
+                                        if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
+                                            continue
+                                        nn = slot_depth[k + 1, yy, xx]
+                                        nc = slot_depth[k, yy, xx]
+                                        if np.isfinite(nn) and abs(d - nn) < abs(d - nc):
+                                            closer = True
+                                    if closer:
+                                        moved[y, x] = True
+                                        any_move = True
+                            if not any_move:
+                                break
+                            for y in range(y0, y0 + tile):
+                                for x in range(x0, x0 + tile):
+                                    if not moved[y, x]:
+                                        continue
+                                    gap = k + 1
+                                    while slot_frag[gap, y, x] >= 0:
+                                        gap += 1
+                                    for s in range(gap, k, -1):
+                                        slot_frag[s, y, x] = slot_frag[s - 1, y, x]
+                                        slot_depth[s, y, x] = slot_depth[s - 1, y, x]
+                                    slot_frag[k, y, x] = -1
+                            for y in range(y0, y0 + tile):
+                                for x in range(x0, x0 + tile):
+                                    if not moved[y, x]:
+                                        continue
+                                    total = 0.0
+                                    cnt = 0
+                                    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                                        yy, xx = y + dy, x + dx
+                                        if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
+                                            continue
+                                        nn = slot_depth[k + 1, yy, xx]
+                                        if np.isfinite(nn):
+                                            total += nn
+                                            cnt += 1
+                                    slot_depth[k, y, x] = total / cnt if cnt > 0 else slot_depth[k + 1, y, x]
+
+        _relocate_kernel = run
+    return _relocate_kernel
+
+
+def relocate(depth: np.ndarray, valid: np.ndarray, tile: int, max_rounds: int = 64):
+    """Fragment relocation (Algorithm 2, §4.1.4, §5.2) on peeled layers.
+
+    ``depth``, ``valid``: (L, H, W), fragments of a pixel in layers 0..n-1 (depth order). Returns ``slot_of``
+    (L, H, W) int: the slot of each pixel's k-th fragment (-1 where there is none). Per block and layer, round after
+    round: fragments whose depth is closer to a 4-neighbour's fragment in the next slot than to that neighbour's
+    fragment in the current slot move one slot back, with the run of fragments behind them, while the pixel still
+    has space (fragments left < slots left in the block); the emptied slot takes the mean depth of the neighbours'
+    next-slot fragments. Neighbours are taken inside the block only (one CUDA block per block in the thesis). The
+    order of a pixel's fragments never changes; the block's layer count never grows.
+    """
+    L, h, w = valid.shape
+    n_block = block_layer_counts(valid, tile).astype(np.int64)
+    slot_frag = np.where(valid, np.arange(L)[:, None, None], -1).astype(np.int64)
+    slot_depth = np.where(valid, depth, np.inf).astype(np.float64)
+    _kernel()(slot_frag, slot_depth, n_block, int(tile), int(max_rounds))
+    slot_of = np.full((L, h, w), -1, np.int64)
+    s, y, x = np.nonzero(slot_frag >= 0)
+    slot_of[slot_frag[s, y, x], y, x] = s
+    return slot_of
+
+
+def identity_slots(valid: np.ndarray) -> np.ndarray:
+    """Slots without relocation: fragment k in slot k."""
+    L = valid.shape[0]
+    return np.where(valid, np.arange(L)[:, None, None], -1).astype(np.int64)
+
+
+def to_slots(values: np.ndarray, valid: np.ndarray, slot_of: np.ndarray):
+    """Scatters per-fragment ``values`` (L, H, W, ...) into slot order; returns (slot values, slot occupied)."""
+    L, h, w = valid.shape
+    out = np.zeros_like(values)
+    occ = np.zeros((L, h, w), bool)
+    k, y, x = np.nonzero(valid)
+    s = slot_of[k, y, x]
+    out[s, y, x] = values[k, y, x]
+    occ[s, y, x] = True
+    return out, occ
+
+
+# ------------------------------------------------------------------------------------------ layout
+
+@dataclass
+class TileLayout:
+    """Where every (slot, block) lives in the texture (Algorithm 4.1)."""
+
+    width: int
+    height: int                 # layer size
+    tile: int
+    full_layers: int
+    order: str                  # "block" | "layer"
+    block_counts: np.ndarray    # (By, Bx) tiles per block (slots beyond the full layers)
+    first_index: np.ndarray     # (By, Bx) block-first: index of the block's first tile
+    layer_index: np.ndarray     # (Lt, By, Bx) layer-first: tile index per tiled slot (-1: none)
+    tiles: int                  # number of tiles
+
+    @property
+    def tiles_in_row(self) -> int:
+        return self.width // self.tile
+
+    @property
+    def tile_rows(self) -> int:
+        return -(-self.tiles // self.tiles_in_row)
+
+    @property
+    def texture_height(self) -> int:
+        return self.full_layers * self.height + self.tile_rows * self.tile
+
+
+def make_layout(block_counts: np.ndarray, width: int, height: int, tile: int, full_layers: int,
+                order: str) -> TileLayout:
+    """Tile indices from block counts by prefix sums, block-first or layer-first, blocks row-major (§4.1.3)."""
+    if order not in ORDERS:
+        raise ValueError(f"unknown packing order '{order}' (choose from {', '.join(ORDERS)})")
+    counts = np.asarray(block_counts, np.int64)
+    flat = counts.ravel()
+    first = (np.cumsum(flat) - flat).reshape(counts.shape)
+    lt = int(flat.max()) if flat.size else 0
+    layer_index = np.full((lt,) + counts.shape, -1, np.int64)
+    offset = 0
+    for j in range(lt):
+        has = counts > j
+        n = int(has.sum())
+        idx = np.full(counts.shape, -1, np.int64)
+        idx[has] = offset + np.arange(n)   # row-major rank among the blocks that have tile j
+        layer_index[j] = idx
+        offset += n
+    return TileLayout(width, height, tile, full_layers, order, counts, first, layer_index, int(flat.sum()))
+
+
+def slot_texel(layout: TileLayout, x: np.ndarray, y: np.ndarray, slot: np.ndarray):
+    """Algorithm 4.1: texture coordinates (tx, ty) of layer pixel (x, y) in ``slot``, and whether that slot is
+    stored at all (full layers always; tiled slots only below the block's count)."""
+    x, y, slot = (np.asarray(a, np.int64) for a in (x, y, slot))
+    t = layout.tile
+    full = slot < layout.full_layers
+    bx, by = x // t, y // t
+    j = slot - layout.full_layers
+    if layout.order == "layer":
+        jj = np.clip(j, 0, max(layout.layer_index.shape[0] - 1, 0))
+        tile_index = layout.layer_index[jj, by, bx] if layout.layer_index.shape[0] else np.full_like(x, -1)
+        stored = full | ((j >= 0) & (j < layout.block_counts[by, bx]) & (tile_index >= 0))
+    else:
+        tile_index = layout.first_index[by, bx] + j
+        stored = full | ((j >= 0) & (j < layout.block_counts[by, bx]))
+    tx_tile = (tile_index % layout.tiles_in_row) * t + x % t
+    ty_tile = layout.full_layers * layout.height + (tile_index // layout.tiles_in_row) * t + y % t
+    tx = np.where(full, x, tx_tile)
+    ty = np.where(full, slot * layout.height + y, ty_tile)
+    return np.where(stored, tx, 0), np.where(stored, ty, 0), stored
+
+
+def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
+    """Packed texture (Fig. 4.7) and its ternary pixel mask (§4.5.2): 1 = a fragment, 0 = an empty slot before
+    the pixel's last fragment, ANY = after it, or texels no slot maps to."""
+    L, h, w = slot_occupied.shape
+    tex = np.zeros((layout.texture_height, w, 3), np.uint8)
+    mask = np.full((layout.texture_height, w), ANY, np.int8)
+    last = np.where(slot_occupied, np.arange(L)[:, None, None], -1).max(axis=0)
+    yy, xx = np.mgrid[0:h, 0:w]
+    for s in range(L):
+        tx, ty, stored = slot_texel(layout, xx, yy, np.full_like(xx, s))
+        occ = slot_occupied[s]
+        if (occ & ~stored).any():
+            raise ValueError(f"slot {s} holds fragments in blocks whose count excludes it")
+        sel = stored
+        tex[ty[sel], tx[sel]] = slot_colour[s][sel]
+        m = np.where(occ, 1, np.where(s < last, 0, ANY)).astype(np.int8)
+        mask[ty[sel], tx[sel]] = m[sel]
+    return tex, mask
+
+
+def unpack(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):
+    """Slot arrays back from a packed texture: (colour (L, H, W, 3), mask (L, H, W) as stored, stored (L, H, W))."""
+    h, w = layout.height, layout.width
+    yy, xx = np.mgrid[0:h, 0:w]
+    colour = np.zeros((layers, h, w, 3), np.uint8)
+    m = np.zeros((layers, h, w), np.uint8)
+    stored = np.zeros((layers, h, w), bool)
+    for s in range(layers):
+        tx, ty, st = slot_texel(layout, xx, yy, np.full_like(xx, s))
+        colour[s] = np.where(st[..., None], tex[ty, tx], 0)
+        m[s] = np.where(st, mask[ty, tx], 0)
+        stored[s] = st
+    return colour, m, stored
+
+
+def relocate_back(slot_colour: np.ndarray, slot_mask: np.ndarray, counts: np.ndarray):
+    """Client side of §4.1.4: the k-th set slot of a pixel holds its k-th fragment; ``counts`` (H, W) = fragments
+    per pixel from the client's own depth peeling. Returns (layer colour (L, H, W, 3), layer valid (L, H, W))."""
+    L, h, w = slot_mask.shape
+    rank = np.cumsum(slot_mask.astype(np.int64), axis=0) - 1
+    out = np.zeros_like(slot_colour)
+    valid = np.zeros((L, h, w), bool)
+    for s in range(L):
+        sel = (slot_mask[s] > 0) & (rank[s] < counts)
+        k = rank[s][sel]
+        ys, xs = np.nonzero(sel)
+        out[k, ys, xs] = slot_colour[s][ys, xs]
+        valid[k, ys, xs] = True
+    return out, valid
+
+
+# ------------------------------------------------------------------------------------------ colour filling
+
+def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:
+    """§4.1.5: inside every tile, empty texels take the average colour of their non-empty 4-neighbours, round after
+    round, until no empty texel is left (a tile with no fragment stays as it is)."""
+    out = tex.astype(np.float32)
+    have = np.asarray(filled, bool).copy()
+    rounds = max_rounds or 2 * tile
+    for _ in range(rounds):
+        if have.all():
+            break
+        cols = _neighbour_views(np.moveaxis(out, -1, 0), tile, 0.0)
+        hv = _neighbour_views(have.astype(np.float32), tile, 0.0)
+        n = sum(hv)
+        s = sum(c * m[None] for c, m in zip(cols, hv))
+        new = ~have & (n > 0)
+        if not new.any():
+            break
+        avg = np.moveaxis(s / np.maximum(n, 1)[None], 0, -1)
+        out[new] = avg[new]
+        have |= new
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)

@@ -1,0 +1,254 @@
+"""Report section "Seed 002 — layered PVS": the thesis's evaluation (chapter 6, Tables 7.1-7.2) beside the suite's
+runs. Reads stored results only: the frames, each run's config.json and updates.parquet, and the document
+``splitbench bench layered_pvs`` stored under ``<results>/bench/layered_pvs.json`` with its images.
+
+The thesis measured Crytek Sponza (static and with dynamic lights) and a game village at 1920x1080 on an RTX 2080 Ti
+server; neither scene is available here. The suite's stand-ins are Dabrovic Sponza (its lights move: the dynamic
+case) and an OpenArena level (for the village), at small resolutions on a CPU backend.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from suite.harness import verdicts
+from suite.harness.reporting import SectionFiles, esc, load_bench, table_html
+from suite.harness.verdicts import Tolerance
+
+METHOD = "layered_pvs"
+PARTS = ("video", "jpeg", "mask", "blocks", "pvs", "subsets")
+SERVER_STAGES = ("pvs", "layers", "path_trace", "denoise", "pack", "compress_pvs", "compress_video", "compress_jpeg",
+                 "compress_mask", "compress_other")
+
+# Table 7.1 / 7.2 and §6 of seed 002.
+PAPER = {"dssim_static": 0.067, "dssim_dynamic": 0.088, "dssim_village": 0.118, "nrmse_static": 0.044,
+         "nrmse_dynamic": 0.085, "bytes_update_kb": 300.0, "updates_per_s": 5.5, "latency_ms": 380.0,
+         "server_ms": 135.0, "client_fps": 60.0, "quadtree_saving_pct": 20.0, "subset_saving_pct": 25.0,
+         "subset_kb": 4.0}
+
+
+def _runs(run_dirs) -> pd.DataFrame:
+    rows = []
+    for d in run_dirs or []:
+        d = Path(d)
+        try:
+            cfg = json.loads((d / "config.json").read_text())["config"]
+        except (OSError, json.JSONDecodeError, KeyError):
+            continue
+        try:
+            upd = pd.read_parquet(d / "updates.parquet")
+        except (OSError, ValueError):
+            upd = pd.DataFrame()
+        try:
+            ev = pd.read_parquet(d / "events.parquet", columns=["loop", "name", "wall_ms"])
+        except (OSError, ValueError, KeyError):
+            ev = pd.DataFrame(columns=["loop", "name", "wall_ms"])
+        p = cfg.get("params", {})
+        row = {"run": d.name, "scene": cfg.get("scene"), "backend": cfg.get("backend"), "net": cfg.get("net"),
+               "protocol": cfg.get("protocol"), "variant": cfg.get("variant"), "clock": cfg.get("clock"),
+               "resolution": "x".join(str(x) for x in cfg.get("resolution", [])), "layers": p.get("layers"),
+               "update_fps": p.get("update_fps"), "client_fps": p.get("client_fps"), "updates": len(upd)}
+        if len(upd):
+            for part in PARTS:
+                row[f"{part}_kB"] = upd.get(f"info_bytes_{part}", pd.Series([np.nan])).mean() / 1e3
+            row["update_kB"] = sum(upd.get(f"info_bytes_{x}", 0) for x in PARTS + ("header",)).mean() / 1e3
+            row["server_ms"] = upd["server_ms"].mean()
+            for s in SERVER_STAGES:
+                row[f"{s}_ms"] = upd.get(f"stage_{s}_ms", pd.Series([np.nan])).mean()
+            span = upd["start_s"].max() - upd["start_s"].min()
+            row["updates_per_s"] = (len(upd) - 1) / span if len(upd) > 1 and span > 0 else np.nan
+            row["quadtree_B"] = upd["info_mask_quadtree_bytes"].mean()
+            row["rle_B"] = upd["info_mask_rle_bytes"].mean()
+            row["quadtree_noany_B"] = upd["info_mask_quadtree_noany_bytes"].mean()
+            row["subset_B"] = upd["info_subset_bytes"].mean()
+            row["fragments_per_layer_px"] = upd["info_fragments_per_pixel"].mean()
+        # Measured wall time of the client's depth peeling (under the work clock its stage duration is modelled
+        # from pixels only, which cannot show the triangle-subset saving).
+        peel = ev[(ev["loop"] == "frame") & (ev["name"] == "peel")]["wall_ms"]
+        row["peel_wall_ms"] = float(peel.mean()) if len(peel) else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _frames(results_df: pd.DataFrame) -> pd.DataFrame:
+    """Per run means over the client frames that show an update (the frames before the first update arrives are
+    black; the thesis's benchmark starts with a loaded scene)."""
+    f = results_df[results_df["method"] == METHOD] if "method" in results_df else results_df
+    f = f[f["update_index"] >= 0]
+    g = f.groupby("run")
+    out = pd.DataFrame({"dssim": g["dssim"].mean(), "nrmse": g["nrmse"].mean(), "zl_dssim": g["zl_dssim"].mean(),
+                        "staleness_ms": g["staleness_ms"].mean(), "client_ms": g["client_ms"].mean()})
+    if "info_hole_pixels" in f:
+        px = f["resolution"].map(lambda r: np.prod([int(x) for x in str(r).split("x")]) if r else np.nan)
+        out["holes_pct"] = (100 * f["info_hole_pixels"] / px).groupby(f["run"]).mean()
+    return out.reset_index()
+
+
+def claims(runs: pd.DataFrame) -> list:
+    c = []
+    def m(**kw):
+        return runs.loc[np.logical_and.reduce([runs[k] == v for k, v in kw.items()])] if len(runs) else runs
+    sponza = m(scene="dabrovic_sponza", variant="paper", net="wan-50m")
+    paper_rates = lambda df: df[(df["update_fps"] == PAPER["updates_per_s"])  # noqa: E731
+                                & (df["client_fps"] == PAPER["client_fps"])] if len(df) else df
+    sponza = paper_rates(sponza)
+    oa = runs[runs["scene"].astype(str).str.startswith("oa:") & (runs["variant"] == "paper")] if len(runs) else runs
+    setting = lambda r: {"scene": r["scene"], "backend": r["backend"], "resolution": r["resolution"],  # noqa: E731
+                         "net": r["net"], "protocol": r["protocol"], "variant": r["variant"], "clock": r["clock"]}
+    not_avail = "Crytek Sponza and the thesis's Village are not available here"
+    tol_q = Tolerance(absolute=0.03, why="Table 7.1's per-frame spread (min-max 0.03-0.18) and the reference noise "
+                                          "of a low-spp suite reference")
+    if len(sponza) and np.isfinite(sponza["dssim"].iloc[0]):
+        r = sponza.iloc[0]
+        c.append(verdicts.judge("002.dssim_dynamic", "mean DSSIM per client frame, Sponza with dynamic lights",
+                                "§6.3, Table 7.1", PAPER["dssim_dynamic"], float(r["dssim"]), "", tol_q,
+                                setting=setting(r), method=METHOD,
+                                note=f"{not_avail}; Dabrovic Sponza (moving lights) stands in at "
+                                     f"{r['resolution']}, not 1920x1080."))
+        c.append(verdicts.judge("002.nrmse_dynamic", "mean NRMSE per client frame, Sponza with dynamic lights",
+                                "§6.3, Table 7.1", PAPER["nrmse_dynamic"], float(r["nrmse"]), "",
+                                Tolerance(absolute=0.04, why="Table 7.1's spread (0.04-0.19)"), setting=setting(r),
+                                method=METHOD, note=f"{not_avail}; Dabrovic Sponza stands in."))
+    if len(oa) and np.isfinite(oa["dssim"].iloc[0]):
+        r = oa.iloc[0]
+        c.append(verdicts.judge("002.dssim_village", "mean DSSIM per client frame, the game Village",
+                                "§6.3, Table 7.1", PAPER["dssim_village"], float(r["dssim"]), "", tol_q,
+                                setting=setting(r), method=METHOD,
+                                note=f"{not_avail}; the OpenArena level {r['scene']} stands in for a game level."))
+    c.append(verdicts.not_measurable("002.dssim_static", "mean DSSIM 0.067 / NRMSE 0.044 on static Crytek Sponza",
+                                     "§6.3, Table 7.1", f"{not_avail}, and the suite's Dabrovic Sponza has moving "
+                                     "lights", paper_value=PAPER["dssim_static"], method=METHOD))
+    if len(sponza):
+        r = sponza.iloc[0]
+        c.append(verdicts.by_calibration("002.update_rate", "about 5.5 scene updates per second", "§6, Table 7.1",
+                                         "update_fps is set to the thesis's 5.5 updates/s (the harness starts an "
+                                         "update no earlier than its period)", paper_value=PAPER["updates_per_s"],
+                                         suite_value=float(r["updates_per_s"]), unit="1/s", setting=setting(r),
+                                         method=METHOD))
+        c.append(verdicts.not_measurable("002.bytes_per_update", "about 300 kB per update (max 550 kB): JPEG ~100, "
+                                         "video ~50, pixel mask ~50, PVS ~80 kB", "§6, Table 7.2",
+                                         f"the suite runs at {r['resolution']} (the thesis 1920x1080, about 100x "
+                                         f"the pixels); measured here {r['update_kB']:.1f} kB per update (JPEG "
+                                         f"{r['jpeg_kB']:.1f}, video {r['video_kB']:.1f}, mask {r['mask_kB']:.1f}, "
+                                         f"PVS {r['pvs_kB']:.1f} kB)", paper_value=PAPER["bytes_update_kb"],
+                                         unit="kB", method=METHOD))
+        c.append(verdicts.not_measurable("002.server_ms", "server processing about 135 ms per update (PVS 3.7, path "
+                                         "tracing 96 incl. denoise 69, packing 2.6 ms)", "§6.1, Table 7.2",
+                                         f"the thesis's server is an RTX 2080 Ti with OptiX; the suite traces on "
+                                         f"{r['backend']} (CPU). Measured {r['server_ms']:.1f} ms per update with "
+                                         f"the {r['clock']} clock", paper_value=PAPER["server_ms"], unit="ms",
+                                         method=METHOD))
+        if np.isfinite(r["staleness_ms"]):
+            c.append(verdicts.judge("002.latency", "scene latency 340-380 ms on the 50 Mbit/s, 17 ms path",
+                                    "§6, Table 7.1", PAPER["latency_ms"], float(r["staleness_ms"]), "ms",
+                                    Tolerance(relative=0.3, why="Table 7.1's min-max 153-926 ms"),
+                                    setting=setting(r), method=METHOD,
+                                    note=f"staleness (display - input of the update shown) with the {r['clock']} "
+                                         "clock: server times follow this machine's CPU or the work model, not "
+                                         "the thesis's GPU."))
+    qt = runs.dropna(subset=["quadtree_B"]) if "quadtree_B" in runs else runs.iloc[0:0]
+    if len(qt):
+        saving = float(100 * (1 - qt["quadtree_B"].sum() / qt["rle_B"].sum()))
+        c.append(verdicts.judge("002.quadtree_vs_rle", "the binary quadtree pixel mask is 10-30 % smaller than RLE + "
+                                "Huffman", "§4.2", PAPER["quadtree_saving_pct"], saving, "%",
+                                Tolerance(absolute=10.0, why="the thesis states a 10-30 % range"),
+                                setting={"runs": len(qt)}, method=METHOD,
+                                note="Both codecs with 'any' pixels encode the same masks of every update."))
+    sub = runs[runs["variant"] == "subset_peeling"] if len(runs) else runs
+    base = paper_rates(runs[(runs["variant"] == "paper") & (runs["scene"] == "dabrovic_sponza")
+                            & (runs["net"] == "wan-50m")]) if len(runs) else runs
+    if len(sub) and len(base) and np.isfinite(sub["peel_wall_ms"].iloc[0]) \
+            and np.isfinite(base["peel_wall_ms"].iloc[0]):
+        saving = float(100 * (1 - sub["peel_wall_ms"].iloc[0] / base["peel_wall_ms"].iloc[0]))
+        c.append(verdicts.judge("002.subset_peeling_time", "triangle-subset peeling saves 10-40 % of the client's "
+                                "layer generation", "§4.5.1", PAPER["subset_saving_pct"], saving, "%",
+                                Tolerance(absolute=15.0, why="the thesis states a 10-40 % range"),
+                                setting=setting(sub.iloc[0]), method=METHOD,
+                                note="measured wall time of the client's peel stage against the paper run's; "
+                                     "client peeling is Embree ray casting here (a BVH per subset), not GPU "
+                                     "rasterisation."))
+        c.append(verdicts.judge("002.subset_bytes", "triangle-subset masks cost 3-5 kB more per update", "§4.5.1",
+                                PAPER["subset_kb"], float(sub["subset_B"].iloc[0]) / 1e3, "kB",
+                                Tolerance(absolute=1.0, why="the thesis states 3-5 kB"), setting=setting(sub.iloc[0]),
+                                method=METHOD, note="at a far smaller resolution and PVS than the thesis's."))
+    return c
+
+
+def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
+    files = SectionFiles(out_dir, METHOD)
+    runs = _runs(run_dirs)
+    if len(runs) == 0:
+        return "<p>No layered_pvs runs.</p>"
+    runs = runs.merge(_frames(results_df), on="run", how="left")
+    html = ["<p>Seed 002 (CTU thesis): the server path-traces depth layers of a predicted PVS, packs them into "
+            "8x8 tiles (first layer H.264, tiles JPEG), streams them with the PVS patch; the client reprojects "
+            "them at 60 Hz. Crytek Sponza and the Village are not available here: Dabrovic Sponza (moving lights) "
+            "and an OpenArena level stand in, at small resolutions on a CPU backend.</p>"]
+    cl = claims(runs)
+    table = verdicts.claims_table(cl)
+    html.append("<h4>Claims</h4>" + table_html(table, prose=True) + files.json([x.as_dict() for x in cl],
+                                                                                 "claims.json"))
+    cols = ["scene", "backend", "resolution", "net", "protocol", "variant", "clock", "layers", "update_fps",
+            "client_fps", "updates", "updates_per_s", "dssim", "nrmse", "zl_dssim", "staleness_ms", "holes_pct",
+            "update_kB"] + \
+        [f"{p}_kB" for p in PARTS] + ["server_ms"] + [f"{s}_ms" for s in SERVER_STAGES] + \
+        ["peel_wall_ms", "quadtree_B", "rle_B", "quadtree_noany_B", "subset_B", "fragments_per_layer_px"]
+    tab = runs[[c for c in cols if c in runs]]
+    html.append("<h4>Runs (means per update / per client frame)</h4>" + table_html(tab) + files.csv(tab, "runs.csv"))
+    f = results_df[results_df["method"] == METHOD] if "method" in results_df else results_df
+    f = f[f["update_index"] >= 0]
+    if "info_motion" in f and f["dssim"].notna().any():
+        px = f["resolution"].map(lambda r: np.prod([int(x) for x in str(r).split("x")]))
+        seg = f.assign(holes_pct=100 * f["info_hole_pixels"] / px).merge(runs[["run", "variant", "update_fps"]],
+                                                                          on="run", suffixes=("_f", ""))
+        seg = seg[(seg["variant"] == "paper") & (seg["update_fps"] == PAPER["updates_per_s"])]
+        by = seg.groupby(["scene", "info_motion"]).agg(frames=("dssim", "size"), dssim=("dssim", "mean"),
+                                                       holes_pct=("holes_pct", "mean"),
+                                                       staleness_ms=("staleness_ms", "mean")).reset_index()
+        html.append("<h4>By camera motion (the thesis's failure cases: backward motion, fast rotation)</h4>"
+                    "<p>Client frames of the paper runs grouped by the client's own motion into the frame; DSSIM "
+                    "over the frames compared with the reference. Backend: "
+                    + esc(", ".join(sorted(set(runs["backend"].astype(str))))) + ".</p>"
+                    + table_html(by) + files.csv(by, "by_motion.csv"))
+    sp = runs[runs["scene"] == "dabrovic_sponza"]
+    if len(sp):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from suite.harness.reporting import label_axes
+
+        fig, ax = plt.subplots(1, 3, figsize=(13, 3.5))
+        sp = sp[sp["client_fps"] == PAPER["client_fps"]]
+        rate = sp[(sp["variant"] == "paper") & (sp["net"] == "wan-50m")].sort_values("update_fps")
+        ax[0].plot(rate["update_fps"], rate["dssim"], "o-")
+        label_axes(ax[0], "updates per second (limit)", "mean DSSIM")
+        lay = sp[sp["variant"].isin(["paper", "layers2", "layers4", "layers16"]) & (sp["net"] == "wan-50m")
+                 & (sp["update_fps"] == PAPER["updates_per_s"])].sort_values("layers")
+        ax[1].plot(lay["layers"], lay["update_kB"], "o-")
+        ax1b = ax[1].twinx()
+        ax1b.plot(lay["layers"], lay["dssim"], "s--", color="C1")
+        label_axes(ax[1], "layers", "kB per update (o), DSSIM (s)")
+        net = sp[(sp["variant"] == "paper") & (sp["update_fps"] == PAPER["updates_per_s"])]
+        ax[2].bar(net["net"].astype(str), net["dssim"])
+        label_axes(ax[2], "network profile", "mean DSSIM")
+        fig.suptitle("Dabrovic Sponza, " + ", ".join(sorted(set(sp["backend"].astype(str)))))
+        html.append("<h4>Sweeps</h4>" + files.plot(fig, "sweeps.png"))
+        plt.close(fig)
+    bench = load_bench(METHOD, run_dirs, results_root)
+    if bench:
+        html.append(f"<h4>Bench ({esc(bench.get('scene'))}, {esc(bench.get('backend'))})</h4>")
+        for key in ("server", "codecs", "client"):
+            if key in bench:
+                html.append(f"<p>{esc(key)}</p>" + table_html(pd.DataFrame(bench[key])))
+        for name in bench.get("images", []):
+            src = Path(results_root or Path(list(run_dirs)[0]).parent) / "bench" / METHOD / name
+            link = files.copy(src, name)
+            if link:
+                html.append(f"<figure><img src='{esc(link)}'><figcaption>{esc(name)} ({esc(bench.get('scene'))}, "
+                            f"{esc(bench.get('backend'))})</figcaption></figure>")
+    return "\n".join(html)

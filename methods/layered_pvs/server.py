@@ -1,0 +1,487 @@
+"""Server side of seed 002 (Fig. 4.2, chapters 4-5): predicted views and PVS (Algorithm 1, §4.1.1), ray-traced
+depth peeling restricted to the PVS (§4.1.2), path tracing of every layer fragment (§4.4: next-event estimation,
+Russian roulette) and SVGF extended to layers (§4.4.1, Algorithm 4).
+
+All functions are pure numpy / numba on arrays plus calls to a suite tracer, so that rays are counted by the
+harness and both backends (Embree, Mitsuba) serve them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from suite.core.gbuffer import camera_rays, surface_attributes
+from suite.core.scene.model import CameraPose
+from suite.core.trace.robust import offset_ray_origin
+
+SHADOW_TMAX_SCALE = 1.0 - 1e-4
+PEEL_REL_EPS = 1e-5         # depth peeling: the next layer starts this far (relative) past the previous hit
+
+
+# ------------------------------------------------------------------------------------------ views
+
+@dataclass(frozen=True)
+class LayerView:
+    """The camera of the layers: the update's pose with the enlarged field of view (§4.1.2)."""
+
+    pose: CameraPose
+    fov_deg: float          # horizontal
+    width: int
+    height: int
+
+
+def layer_size(width: int, height: int, fov_deg: float, enlarge: float, tile: int) -> tuple[int, int, float]:
+    """Layer size for a client of ``width`` x ``height`` whose horizontal and vertical fields of view are enlarged
+    by ``enlarge`` at the client's pixel density (§6: 1920x1080 at 1.1x gives 2254x1214), rounded up to whole
+    tiles; returns (W_l, H_l, horizontal fov of the layers in degrees)."""
+    tan_x = math.tan(math.radians(fov_deg) / 2)
+    tan_y = tan_x * height / width
+    wl = width * math.tan(enlarge * math.atan(tan_x)) / tan_x
+    hl = height * math.tan(enlarge * math.atan(tan_y)) / tan_y
+    wl = int(math.ceil(round(wl, 6) / tile)) * tile
+    hl = int(math.ceil(round(hl, 6) / tile)) * tile
+    # Same angular density as the client: the layer's tangent extents grow with its pixel count.
+    fov_l = math.degrees(2 * math.atan(tan_x * wl / width))
+    return wl, hl, fov_l
+
+
+def predict_views(history: list, period_s: float, corner_offset: float) -> list[CameraPose]:
+    """Algorithm 1's seven views from poses the client sent (``history``: (t_s, pose), oldest first): the current
+    view, four corners on the plane perpendicular to it at ``corner_offset`` (adapted to the update period by the
+    caller), and two extrapolated in time (one and two update periods ahead, from the last two poses)."""
+    t1, cur = history[-1]
+    f, r, u = cur.basis()
+    p = np.asarray(cur.position, np.float64)
+    tgt = np.asarray(cur.target, np.float64)
+    views = [cur]
+    for sx, sy in ((-1, -1), (1, -1), (-1, 1), (1, 1)):
+        off = corner_offset * (sx * r + sy * u)
+        views.append(CameraPose(p + off, tgt + off, cur.up))
+    if len(history) >= 2 and history[-1][0] > history[-2][0]:
+        t0, prev = history[-2]
+        dt = t1 - t0
+        v = (p - np.asarray(prev.position, np.float64)) / dt
+        f_prev = prev.basis()[0]
+        dfwd = (f - f_prev) / dt
+        for k in (1, 2):
+            pk = p + v * (k * period_s)
+            fk = f + dfwd * (k * period_s)
+            n = np.linalg.norm(fk)
+            fk = fk / n if n > 1e-12 else f
+            views.append(CameraPose(pk, pk + fk, cur.up))
+    else:
+        views += [cur, cur]     # no motion known yet: the current view again
+    return views
+
+
+def view_rays(view: LayerView):
+    return camera_rays(view.pose, view.fov_deg, view.width, view.height, dtype=np.float64)
+
+
+def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.ndarray:
+    """Algorithm 1: triangle ids seen from the views (an id buffer per view, by ray casting against the whole
+    scene), marked and compacted (the prefix sum of the thesis = ``np.nonzero`` of the marks). Sorted ids."""
+    marks = np.zeros(tracer.scene.num_faces, bool)
+    for pose in views:
+        o, d = camera_rays(pose, fov_deg, width, height, dtype=np.float64)
+        hits = tracer.intersect(o.astype(np.float32), d.astype(np.float32))
+        marks[hits.prim[hits.prim >= 0]] = True
+    return np.nonzero(marks)[0].astype(np.int64)
+
+
+# ------------------------------------------------------------------------------------------ depth peeling
+
+@dataclass
+class Layers:
+    t: np.ndarray        # (L, H, W) float32 distance along the ray (inf = empty)
+    prim: np.ndarray     # (L, H, W) int64 triangle (scene id on the server, PVS index on the client), -1 = empty
+    u: np.ndarray
+    v: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.prim >= 0
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self.valid.sum(axis=0)
+
+
+def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, max_skips: int = 256,
+         shape=None) -> Layers:
+    """Ray-traced depth peeling (§4.1.2): layer k is the nearest hit past layer k-1's hit (``tmin`` = that distance
+    plus a relative epsilon). ``keep`` (prim -> bool) restricts primary hits to the PVS: a hit on another triangle
+    is stepped over and the ray traced again from just past it (secondary and shadow rays are not affected).
+    ``intersect(o, d, tmin) -> Hits``; origins and directions float32 (N, 3)."""
+    n = len(dirs)
+    t_out = np.full((layers, n), np.inf, np.float32)
+    p_out = np.full((layers, n), -1, np.int64)
+    u_out = np.zeros((layers, n), np.float32)
+    v_out = np.zeros((layers, n), np.float32)
+    tmin = np.zeros(n, np.float32)
+    alive = np.arange(n)
+    for k in range(layers):
+        idx = alive
+        start = tmin[idx]
+        for _ in range(max_skips):
+            if len(idx) == 0:
+                break
+            h = intersect(origins[idx], dirs[idx], start)
+            hit = h.prim >= 0
+            ok = hit if keep is None else hit & keep(np.maximum(h.prim, 0))
+            done = ok | ~hit
+            sel = idx[ok]
+            t_out[k, sel], p_out[k, sel], u_out[k, sel], v_out[k, sel] = h.t[ok], h.prim[ok], h.u[ok], h.v[ok]
+            skip = ~done
+            idx, start = idx[skip], past(h.t[skip])
+        alive = np.nonzero(p_out[k] >= 0)[0]
+        tmin[alive] = past(t_out[k, alive])
+        if len(alive) == 0:
+            break
+    shp = (layers,) + tuple(shape) if shape is not None else (layers, n)
+    return Layers(t_out.reshape(shp), p_out.reshape(shp), u_out.reshape(shp), v_out.reshape(shp))
+
+
+def past(t: np.ndarray) -> np.ndarray:
+    t = np.asarray(t, np.float32)
+    return np.nextafter(t * np.float32(1 + PEEL_REL_EPS), np.float32(np.inf)).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------ path tracing
+
+@dataclass
+class Fragments:
+    """Surface data of every layer fragment, flattened (N = number of fragments)."""
+
+    index: tuple            # (k, y, x) arrays into the layer grid
+    position: np.ndarray    # (N, 3) float64
+    geo_normal: np.ndarray  # (N, 3) facing the layer camera
+    normal: np.ndarray      # (N, 3) shading normal facing the layer camera
+    albedo: np.ndarray      # (N, 3)
+    emission: np.ndarray    # (N, 3) (front-facing emitters only)
+    view_dir: np.ndarray    # (N, 3) float64
+
+
+def _facing(ng, ns, d):
+    flip = np.sign(np.einsum("ij,ij->i", ng, d))[:, None]
+    flip[flip == 0] = 1.0
+    ng_f = -flip * ng
+    ns_f = np.where(np.einsum("ij,ij->i", ns, ng_f)[:, None] < 0, -ns, ns)
+    return ng_f, ns_f, flip[:, 0] < 0
+
+
+def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
+    w = layers.prim.shape[2]
+    k, y, x = np.nonzero(layers.valid)
+    pix = y * w + x
+    prim = layers.prim[k, y, x]
+    o, d = origins64[pix], dirs64[pix]
+    p, ng, ns, alb, em = surface_attributes(scene, scene.positions_at(t_s), scene.normals_at(t_s), prim,
+                                            layers.u[k, y, x], layers.v[k, y, x], o, d)
+    ng_f, ns_f, front = _facing(ng, ns, d)
+    em = np.where(front[:, None], em, 0.0)
+    return Fragments((k, y, x), p, ng_f, ns_f, alb, em, d)
+
+
+class LightSampler:
+    """Point lights and emissive triangles for next-event estimation (§4.4: one randomly selected light per
+    vertex). With at most ``PER_POINT_LIGHTS`` lights a light is chosen in proportion to its unoccluded irradiance
+    bound at the shading point (power / squared distance, a triangle at its centroid); with more, in proportion
+    to power. Both are unbiased; the first keeps far, strong lights (the 10 km sun and sky lights of the Quake
+    levels) from taking nearly every sample from the nearby ones."""
+
+    PER_POINT_LIGHTS = 2048
+    CHUNK_ELEMENTS = 1 << 21     # points x lights per block of the per-point choice
+
+    def __init__(self, scene, t_s: float):
+        lights = scene.lights_at(t_s)
+        self.point_pos = np.array([lt.position for lt in lights], np.float64).reshape(-1, 3)
+        self.point_int = np.array([lt.intensity for lt in lights], np.float64).reshape(-1, 3)
+        tl = scene.area_light_triangles(t_s)
+        self.tri = tl.vertices.reshape(-1, 3, 3)
+        self.tri_n = tl.normal.reshape(-1, 3)
+        self.tri_l = tl.radiance.reshape(-1, 3)
+        self.tri_area = tl.area.reshape(-1)
+        power = np.concatenate([4 * np.pi * self.point_int.mean(axis=1),
+                                np.pi * self.tri_area * self.tri_l.mean(axis=1)])
+        total = power.sum()
+        self.n_point = len(self.point_pos)
+        self.pmf = power / total if total > 0 else np.zeros_like(power)
+        self.cdf = np.cumsum(self.pmf)
+        self.power = power
+        self.centres = np.concatenate([self.point_pos, self.tri.mean(axis=1)]) if len(self.tri) else self.point_pos
+        self.min_d2 = (1e-3 * float(np.linalg.norm(np.ptp(self.centres, axis=0)) + 1e-6)) ** 2 \
+            if len(self.centres) else 1.0
+
+    def choose(self, p, u_sel):
+        """Light index per point and its selection probability."""
+        n = len(p)
+        if len(self.power) > self.PER_POINT_LIGHTS or n == 0:
+            j = np.minimum(np.searchsorted(self.cdf, u_sel * self.cdf[-1], side="right"), len(self.cdf) - 1)
+            return j, self.pmf[j]
+        j = np.zeros(n, np.int64)
+        pmf = np.zeros(n)
+        rows = max(64, self.CHUNK_ELEMENTS // max(len(self.power), 1))
+        for a in range(0, n, rows):
+            b = min(a + rows, n)
+            d2 = ((p[a:b, None, :] - self.centres[None, :, :]) ** 2).sum(-1)
+            w = self.power[None, :] / np.maximum(d2, self.min_d2)
+            cdf = np.cumsum(w, axis=1)
+            tot = cdf[:, -1]
+            jj = np.minimum((cdf < (u_sel[a:b] * tot)[:, None]).sum(axis=1), len(self.power) - 1)
+            j[a:b] = jj
+            pmf[a:b] = w[np.arange(b - a), jj] / np.maximum(tot, 1e-300)
+        return j, pmf
+
+    def __len__(self):
+        return int((self.pmf > 0).sum())
+
+    def sample(self, p, u_sel, u2):
+        """Per point: direction, distance, radiance-weighted contribution factor (L cos_y / (d^2 pdf)), validity."""
+        n = len(p)
+        j, pmf = self.choose(p, u_sel)
+        is_pt = j < self.n_point
+        target = np.zeros((n, 3))
+        weight = np.zeros((n, 3))
+        ok = np.zeros(n, bool)
+        if is_pt.any():
+            jp = j[is_pt]
+            target[is_pt] = self.point_pos[jp]
+            d2 = np.maximum(((target[is_pt] - p[is_pt]) ** 2).sum(1), 1e-12)
+            weight[is_pt] = self.point_int[jp] / d2[:, None] / pmf[is_pt][:, None]
+            ok[is_pt] = True
+        ar = ~is_pt
+        if ar.any():
+            jt = j[ar] - self.n_point
+            su = np.sqrt(u2[ar, 0])
+            b1, b2 = 1 - su, u2[ar, 1] * su
+            tri = self.tri[jt]
+            y = tri[:, 0] + b1[:, None] * (tri[:, 1] - tri[:, 0]) + b2[:, None] * (tri[:, 2] - tri[:, 0])
+            target[ar] = y
+            to = y - p[ar]
+            d2 = np.maximum((to ** 2).sum(1), 1e-12)
+            wi = to / np.sqrt(d2)[:, None]
+            cos_y = -(wi * self.tri_n[jt]).sum(1)
+            good = cos_y > 0
+            weight[ar] = np.where(good[:, None], self.tri_l[jt] * (cos_y * self.tri_area[jt] / d2
+                                                                   / pmf[ar])[:, None], 0.0)
+            ok[ar] = good
+        to = target - p
+        dist = np.linalg.norm(to, axis=1)
+        wi = to / np.maximum(dist, 1e-30)[:, None]
+        return wi, dist, weight, ok
+
+
+def _dot(a, b):
+    return np.einsum("ij,ij->i", a, b)
+
+
+def _cosine_hemisphere(n, u):
+    r = np.sqrt(u[:, 0])
+    phi = 2 * np.pi * u[:, 1]
+    lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(0.0, 1 - u[:, 0]))
+    a = np.where(np.abs(n[:, 0:1]) > 0.9, np.array([[0.0, 1.0, 0.0]]), np.array([[1.0, 0.0, 0.0]]))
+    t = np.cross(n, a)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(n, t)
+    return lx[:, None] * t + ly[:, None] * b + lz[:, None] * n
+
+
+def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
+    """Path tracing of every fragment (§4.4): ``spp`` paths per fragment, next-event estimation at every vertex
+    towards one light chosen by power, cosine-sampled Lambertian bounces, Russian roulette from vertex
+    ``rr_depth`` on. ``max_depth`` counts vertices as Mitsuba does (2 = direct light only). Every material is
+    shaded as Lambertian with its albedo. Returns the primary fragments' *demodulated* incident illumination
+    (radiance / albedo, without their emission) and the first two moments of its luminance per fragment."""
+    n = len(frag.position)
+    lights = LightSampler(scene, t_s)
+    if n == 0 or max_depth < 2 or len(lights) == 0:
+        return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
+    positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
+    shift = getattr(tracer, "shift", None)
+    lum_w = np.array([0.2126, 0.7152, 0.0722])
+    # One wavefront holds every sample of every fragment (row = sample * n + fragment); rows stay unique within
+    # a wavefront, so contributions are added by plain fancy indexing.
+    total = n * spp
+    rows = np.arange(total)
+    p = np.tile(frag.position, (spp, 1))
+    ng = np.tile(frag.geo_normal, (spp, 1))
+    ns = np.tile(frag.normal, (spp, 1))
+    thr = np.ones((total, 3))          # demodulated: the primary vertex's albedo is left out
+    sample = np.zeros((total, 3))
+    depth = 1
+    while len(rows):
+        m = len(rows)
+        # Next-event estimation towards one light.
+        wi, dist, wl, ok = lights.sample(p, rng.random(m), rng.random((m, 2)))
+        cos_x = _dot(wi, ns)
+        ok &= cos_x > 0
+        if ok.any():
+            sel = np.nonzero(ok)[0]
+            side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
+            o = offset_ray_origin(p[sel], side, shift)
+            seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
+            occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
+                                  (seg * SHADOW_TMAX_SCALE).astype(np.float32))
+            lit = sel[~occ]
+            sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
+        if depth + 1 >= max_depth:
+            break
+        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
+        if depth >= rr_depth:
+            q = np.minimum(thr.max(axis=1), 0.95)
+            live = rng.random(m) < q
+            thr = thr / np.maximum(q, 1e-12)[:, None]
+        else:
+            live = np.ones(m, bool)
+        d_new = _cosine_hemisphere(ns, rng.random((m, 2)))
+        live &= _dot(d_new, ng) > 0
+        if not live.any():
+            break
+        rows, p, ng, ns, thr, d_new = rows[live], p[live], ng[live], ns[live], thr[live], d_new[live]
+        o = offset_ray_origin(p, ng, shift)
+        hits = tracer.intersect(o.astype(np.float32), d_new.astype(np.float32))
+        hit = hits.prim >= 0
+        rows, o, d_new, thr = rows[hit], o[hit], d_new[hit], thr[hit]
+        if len(rows) == 0:
+            break
+        p2, ng2, ns2, alb2, _ = surface_attributes(scene, positions, normals, hits.prim[hit], hits.u[hit],
+                                                   hits.v[hit], o, d_new)
+        ng, ns, _ = _facing(ng2, ns2, d_new)
+        thr = thr * alb2
+        p = p2
+        depth += 1
+    per = sample.reshape(spp, n, 3)
+    illum = per.sum(axis=0)
+    lum = per @ lum_w
+    m1 = lum.sum(axis=0)
+    m2 = (lum * lum).sum(axis=0)
+    return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
+
+
+# ------------------------------------------------------------------------------------------ SVGF with layers
+
+def spatial_variance(illum: np.ndarray, valid: np.ndarray, sample_variance: np.ndarray) -> np.ndarray:
+    """Luminance variance per fragment for SVGF's edge-stopping: the larger of the sample variance of the mean
+    (from the per-fragment moments) and the 3x3 spatial variance within the fragment's layer. SVGF falls back to a
+    spatial estimate while a pixel has no temporal history; every update here is such a frame (no temporal
+    accumulation), and with few samples the moments alone often read 0."""
+    lum = illum @ np.array([0.2126, 0.7152, 0.0722])
+    v = valid.astype(np.float64)
+    pad = lambda a: np.pad(a, ((0, 0), (1, 1), (1, 1)))  # noqa: E731
+    lp, l2p, vp = pad(lum * v), pad(lum * lum * v), pad(v)
+    h, w = valid.shape[1:]
+    s1 = sum(lp[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
+    s2 = sum(l2p[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
+    n = sum(vp[:, dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3))
+    mean = s1 / np.maximum(n, 1)
+    var = np.maximum(s2 / np.maximum(n, 1) - mean * mean, 0.0)
+    return np.where(valid, np.maximum(var, sample_variance), 0.0)
+
+
+_svgf_kernel = None
+
+
+def _svgf():
+    global _svgf_kernel
+    if _svgf_kernel is None:
+        import numba
+
+        # error_model="numpy": a weight sum that underflows gives inf/nan here instead of raising (guarded below).
+        @numba.njit(cache=True, nogil=True, error_model="numpy")
+        def atrous(col, var, pos, nrm, valid, depth, step, pix_angle, shift_scale, sigma_l, sigma_n, out_col,
+                   out_var):
+            L, H, W = valid.shape
+            h = (1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16)
+            for k in range(L):
+                for y in range(H):
+                    for x in range(W):
+                        if not valid[k, y, x]:
+                            continue
+                        lc = 0.2126 * col[k, y, x, 0] + 0.7152 * col[k, y, x, 1] + 0.0722 * col[k, y, x, 2]
+                        sd = math.sqrt(max(var[k, y, x], 0.0))
+                        foot = depth[k, y, x] * pix_angle
+                        wsum = 0.0
+                        vsum = 0.0
+                        c0 = 0.0
+                        c1 = 0.0
+                        c2 = 0.0
+                        for dy in range(-2, 3):
+                            yy = y + dy * step
+                            if yy < 0 or yy >= H:
+                                continue
+                            for dx in range(-2, 3):
+                                xx = x + dx * step
+                                if xx < 0 or xx >= W:
+                                    continue
+                                # §4.4.1: among the fragments at this tap, the one closest to the centre
+                                # fragment's plane shifted along its normal (towards the camera) by a distance
+                                # growing with the camera distance and the tap's screen distance.
+                                shift = shift_scale * foot * math.sqrt(float(dx * dx + dy * dy)) * step
+                                best = -1
+                                best_d = 1e300
+                                best_pd = 0.0
+                                for m in range(L):
+                                    if not valid[m, yy, xx]:
+                                        break
+                                    pd = (nrm[k, y, x, 0] * (pos[m, yy, xx, 0] - pos[k, y, x, 0])
+                                          + nrm[k, y, x, 1] * (pos[m, yy, xx, 1] - pos[k, y, x, 1])
+                                          + nrm[k, y, x, 2] * (pos[m, yy, xx, 2] - pos[k, y, x, 2]))
+                                    dd = abs(pd - shift)
+                                    if dd < best_d:
+                                        best_d = dd
+                                        best = m
+                                        best_pd = pd
+                                if best < 0:
+                                    continue
+                                ln = 0.2126 * col[best, yy, xx, 0] + 0.7152 * col[best, yy, xx, 1] \
+                                    + 0.0722 * col[best, yy, xx, 2]
+                                ndot = (nrm[k, y, x, 0] * nrm[best, yy, xx, 0] + nrm[k, y, x, 1] * nrm[best, yy, xx, 1]
+                                        + nrm[k, y, x, 2] * nrm[best, yy, xx, 2])
+                                wn = max(ndot, 0.0) ** sigma_n
+                                dist_px = math.sqrt(float(dx * dx + dy * dy)) * step
+                                wz = math.exp(-abs(best_pd) / (foot * (dist_px + 1.0) + 1e-12))
+                                wl = math.exp(-abs(lc - ln) / (sigma_l * sd + 1e-10))
+                                wgt = h[dy + 2] * h[dx + 2] * wn * wz * wl
+                                wsum += wgt
+                                vsum += wgt * wgt * var[best, yy, xx]
+                                c0 += wgt * col[best, yy, xx, 0]
+                                c1 += wgt * col[best, yy, xx, 1]
+                                c2 += wgt * col[best, yy, xx, 2]
+                        if wsum > 1e-150:
+                            out_col[k, y, x, 0] = c0 / wsum
+                            out_col[k, y, x, 1] = c1 / wsum
+                            out_col[k, y, x, 2] = c2 / wsum
+                            out_var[k, y, x] = vsum / (wsum * wsum)
+                        else:
+                            out_col[k, y, x, :] = col[k, y, x, :]
+                            out_var[k, y, x] = var[k, y, x]
+
+        _svgf_kernel = atrous
+    return _svgf_kernel
+
+
+def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: float, iterations: int = 5,
+                shift_scale: float = 1.0, sigma_l: float = 4.0, sigma_n: float = 128.0):
+    """SVGF's à-trous wavelet filter (5x5 B3 kernel, step 2^i, ``iterations`` passes; edge-stopping on normal,
+    plane distance and luminance against the variance) extended to layers as §4.4.1 describes. Inputs are
+    (L, H, W[, 3]) grids; returns the filtered illumination (L, H, W, 3) float32.
+
+    Differs from the thesis: no temporal accumulation (updates are ~180 ms apart), so the variance comes from the
+    per-fragment sample moments only, and it is not pre-blurred."""
+    kern = _svgf()
+    col = np.ascontiguousarray(illum, np.float64)
+    var = np.ascontiguousarray(variance, np.float64)
+    pos = np.ascontiguousarray(position, np.float64)
+    nrm = np.ascontiguousarray(normal, np.float64)
+    val = np.ascontiguousarray(valid, np.bool_)
+    dep = np.ascontiguousarray(np.where(valid, depth, 0.0), np.float64)
+    for i in range(iterations):
+        out_c = np.zeros_like(col)
+        out_v = np.zeros_like(var)
+        kern(col, var, pos, nrm, val, dep, 1 << i, float(pix_angle), float(shift_scale), float(sigma_l),
+             float(sigma_n), out_c, out_v)
+        col, var = out_c, out_v
+    return col.astype(np.float32)

@@ -1,0 +1,99 @@
+"""Packing of seed 002 (§4.1.3-§4.1.5, Algorithms 2 and 4.1): exact round trips, fragment order kept."""
+import numpy as np
+import pytest
+
+from methods.layered_pvs import codecs, packing
+
+
+def _layers(rng, L=4, h=16, w=24, empty_block=True):
+    count = rng.integers(0, L + 1, (h, w))
+    if empty_block:
+        count[:8, :8] = 0
+    valid = np.arange(L)[:, None, None] < count[None]
+    depth = np.where(valid, np.cumsum(rng.random((L, h, w)), axis=0) + 3 * rng.random((h, w)), np.inf)
+    colour = rng.integers(0, 256, (L, h, w, 3)).astype(np.uint8)
+    return count, valid, depth.astype(np.float32), colour
+
+
+@pytest.mark.parametrize("order", packing.ORDERS)
+@pytest.mark.parametrize("full_layers", [0, 1, 2])
+@pytest.mark.parametrize("relocate", [False, True])
+def test01_pack_unpack_relocate_back_round_trips_exactly(order, full_layers, relocate):
+    rng = np.random.default_rng(full_layers + 10 * relocate)
+    count, valid, depth, colour = _layers(rng)
+    slot_of = packing.relocate(depth, valid, 8) if relocate else packing.identity_slots(valid)
+    slot_colour, occupied = packing.to_slots(colour, valid, slot_of)
+    counts = np.maximum(packing.block_layer_counts(occupied, 8) - full_layers, 0)
+    layout = packing.make_layout(counts, 24, 16, 8, full_layers, order)
+    tex, mask = packing.pack(slot_colour, occupied, layout)
+    assert tex.shape[0] == layout.texture_height
+    # The mask goes through its lossless codec, 'any' pixels resolved by the codec.
+    mask_bin = codecs.quadtree_decode(codecs.quadtree_encode(mask), mask.shape)
+    sc, sm, _ = packing.unpack(tex, mask_bin, layout, 4)
+    back, back_valid = packing.relocate_back(sc, sm, count)
+    assert np.array_equal(back_valid, valid)
+    assert np.array_equal(back[valid], colour[valid])
+
+
+def test02_relocation_keeps_fragment_order_and_block_layer_counts():
+    rng = np.random.default_rng(2)
+    count, valid, depth, _ = _layers(rng, L=5, h=32, w=32, empty_block=False)
+    slot_of = packing.relocate(depth, valid, 8)
+    before = packing.block_layer_counts(valid, 8)
+    _, occupied = packing.to_slots(np.zeros(valid.shape + (1,)), valid, slot_of)
+    assert np.array_equal(packing.block_layer_counts(occupied, 8), before) or \
+        (packing.block_layer_counts(occupied, 8) <= before).all()
+    s = np.where(valid, slot_of, -1)
+    # Fragment k+1 of a pixel sits in a later slot than fragment k: the order is kept.
+    both = valid[1:] & valid[:-1]
+    assert (s[1:][both] > s[:-1][both]).all()
+    assert (slot_of[valid] >= np.nonzero(valid)[0]).all()     # fragments only move back
+    assert (slot_of != packing.identity_slots(valid)).any()    # and some did move
+
+
+def test03_relocation_moves_a_surface_continued_in_the_next_layer():
+    # A floor at depth 10 whose left half is covered by a box at depth 5: the floor's visible right half is in
+    # layer 0 and its left half in layer 1. Algorithm 2 moves the right half to layer 1 (depth continuity).
+    L, h, w = 2, 8, 8
+    valid = np.zeros((L, h, w), bool)
+    depth = np.full((L, h, w), np.inf, np.float32)
+    valid[0] = True
+    depth[0, :, :4], depth[0, :, 4:] = 5.0, 10.0
+    valid[1, :, :4] = True
+    depth[1, :, :4] = 10.0
+    slot_of = packing.relocate(depth, valid, 8)
+    assert (slot_of[0, :, 4] == 1).all()      # the floor's column next to the box edge moved to slot 1
+
+
+def test04_every_tile_empty_in_a_layer_packs_no_tile():
+    valid = np.zeros((3, 16, 16), bool)
+    valid[0] = True
+    colour = np.full((3, 16, 16, 3), 9, np.uint8)
+    slot_colour, occupied = packing.to_slots(colour, valid, packing.identity_slots(valid))
+    counts = np.maximum(packing.block_layer_counts(occupied, 8) - 1, 0)
+    layout = packing.make_layout(counts, 16, 16, 8, 1, "block")
+    tex, mask = packing.pack(slot_colour, occupied, layout)
+    assert layout.tiles == 0 and tex.shape == (16, 16, 3)
+    assert (mask == 1).all()
+
+
+def test05_algorithm_4_1_addresses_block_first_and_layer_first_tiles():
+    counts = np.array([[2, 0], [1, 3]])
+    for order in packing.ORDERS:
+        lay = packing.make_layout(counts, 16, 16, 8, 1, order)
+        tx, ty, stored = packing.slot_texel(lay, np.array([0, 8, 0, 8, 8]), np.array([0, 0, 8, 8, 8]),
+                                            np.array([2, 1, 1, 3, 4]))
+        assert stored.tolist() == [True, False, True, True, False]
+        idx = (ty[stored] - 16) // 8 * 2 + tx[stored] // 8
+        expected = {"block": [1, 2, 5], "layer": [3, 1, 5]}[order]
+        assert idx.tolist() == expected
+
+
+def test06_colour_filling_fills_every_empty_texel_of_a_nonempty_tile_only():
+    tex = np.zeros((8, 16, 3), np.uint8)
+    filled = np.zeros((8, 16), bool)
+    tex[3, 3] = (200, 100, 50)
+    filled[3, 3] = True
+    out = packing.colour_fill(tex, filled, 8)
+    assert (out[:, :8] == (200, 100, 50)).all()     # the first tile takes its one colour everywhere
+    assert (out[:, 8:] == 0).all()                  # the empty second tile stays as it was
