@@ -23,10 +23,16 @@ test: $(STAMP)
 smoke: $(STAMP)
 	$(VENV)/bin/splitbench reproduce --preset smoke
 
-# The quick preset, then the method benchmarks whose figures the report sections show, then the report.
+# The quick preset (each method's own grid), the shared cross-method matrix (suite/harness/compare.toml; two
+# worker processes, one per core: its runs are single-threaded), the method benchmarks whose figures the report
+# sections show, then the report.
+COMPARE_WORKERS ?= 2
 reproduce: $(STAMP)
-	$(VENV)/bin/splitbench reproduce --preset quick
+	$(VENV)/bin/splitbench reproduce --preset quick --no-report
+	$(VENV)/bin/splitbench reproduce --preset compare --executor processes --workers $(COMPARE_WORKERS) --no-report
 	$(VENV)/bin/splitbench bench visibility_bitmap
+	$(VENV)/bin/splitbench bench rail
+	$(VENV)/bin/splitbench bench layered_pvs
 	$(VENV)/bin/splitbench report
 
 report: $(STAMP)

@@ -1,7 +1,13 @@
 """The report: reads stored results only (never runs anything) → CSV tables + PNG plots → report/index.html.
 
-Sections: run matrix; frame-time breakdown per run (stacked by stage and network); bandwidth; SSIM/DSSIM per
-frame; speed vs error across all runs; machine and versions. Extensions:
+Sections, in order: the answer (per network profile, the best method under a frame-time or bandwidth budget,
+from the shared ``compare`` matrix), Pareto fronts per scene and network, the references' noise floors, the
+reproduction-fidelity table (every claim of every method section), method pages with images, where times were
+measured, cost growth (:mod:`reports.compare`); then each method's own section (headed by the paper it
+reproduces, :mod:`reports.papers`), the run matrix (one collapsible table per method, all runs in runs.csv),
+frame-time breakdown, bandwidth, quality per frame, machine and versions, scenes, netsim validation. Plots that
+would list every run show at most :data:`FOCUS_RUNS` (the compare matrix's first scene over TCP when present);
+the CSVs hold all. Extensions:
 
 * a method may ship ``methods/<name>/report.py`` with ``section(results_df, run_dirs) -> str`` (an HTML
   fragment), imported by :func:`suite.harness.registry.load_module`; it gets the frames of its own runs (with the
@@ -17,13 +23,14 @@ Tables, figures and files go through :mod:`suite.harness.reporting`, the helpers
 from __future__ import annotations
 
 import inspect
+import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from suite import fileio
-from suite.harness import registry, results
+from suite.harness import registry, results, verdicts
 from suite.harness.reporting import copy_file, esc, figure, label_axes, save_figure, table_html, write_csv
 from suite.harness.verdicts import format_value
 
@@ -31,6 +38,8 @@ REPO_DIR = Path(__file__).resolve().parent.parent
 EXTRA_TABLE_DIRS: list[Path] = []
 NETSIM_VALIDATION_CSV = REPO_DIR / "netsim" / "validation" / "validation.csv"
 RUN_COLUMNS = ["run", "method", "variant", "mode", "scene", "backend", "resolution", "net", "protocol", "frames"]
+# Plots with one bar or line per run show at most this many runs.
+FOCUS_RUNS = 24
 
 
 def load_all(results_root) -> tuple[pd.DataFrame, pd.DataFrame, list[dict]]:
@@ -235,61 +244,157 @@ def scenes_section(results_root: Path) -> str:
     return "<h2>Scenes</h2><p>" + note + "</p>" + table_html(pd.DataFrame(rows))
 
 
+def focus_labels(runs: pd.DataFrame, record: dict | None) -> list[str]:
+    """The run labels a per-run plot shows: the compare matrix's first scene over TCP when the results hold it,
+    else the first :data:`FOCUS_RUNS` runs."""
+    df = runs
+    if record and record.get("run_dirs"):
+        mine = runs[runs["run"].isin(set(record["run_dirs"]))]
+        if not mine.empty:
+            first = mine["scene"].iloc[0]
+            df = mine[(mine["scene"] == first) & (mine["protocol"] == "tcp")]
+    return list(df["label"].head(FOCUS_RUNS))
+
+
+def gather_claims(out: Path) -> list:
+    """Every claim the method sections stored (``<out>/<method>/claims.json``), in method order."""
+    found = []
+    for path in sorted(Path(out).glob("*/claims.json")):
+        try:
+            found += [verdicts.Claim.from_dict(d) for d in json.loads(path.read_text())]
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError):
+            continue
+    return found
+
+
+def claims_section(claims: list, out: Path) -> str:
+    """The reproduction-fidelity table: each claim's paper value, suite value, setting and verdict."""
+    from reports.papers import paper_of
+
+    if not claims:
+        return ("<h2 id='claims'>Reproduction fidelity</h2><p>No method section stored claims (run the quick "
+                "preset: <code>splitbench reproduce --preset quick</code>).</p>")
+    table = verdicts.claims_table(claims)
+    write_csv(table, out / "claims.csv")
+    counts = table["verdict"].value_counts()
+    summary = ", ".join(f"{n} {esc(kind)}" for kind, n in counts.items())
+    rows = []
+    for claim, row in zip(claims, table.to_dict("records")):
+        paper = paper_of(claim.method)
+        who = esc(paper.short()) if paper else esc(claim.method)
+        rows.append(f"<tr><td>{who}<br><small>{esc(claim.method)} · {esc(row['id'])}</small></td>"
+                    f"<td>{esc(row['statement'])}<br><small>{esc(row['source'])}</small></td>"
+                    f"<td>{esc(row['paper'])}</td><td>{esc(row['suite'])}</td><td>{esc(row['setting'])}</td>"
+                    f"<td class='v-{esc(row['verdict'].split()[0])}'>{esc(row['verdict'])}<br>"
+                    f"<small>{esc(row['tolerance'])} {esc(row['how'])}</small></td></tr>")
+    cited = sorted({c.method for c in claims if paper_of(c.method)})
+    papers = "".join(f"<li><b>{esc(paper_of(m).short())}</b> ({esc(m)}): {esc(paper_of(m).cite())}</li>"
+                     for m in cited)
+    return ("<h2 id='claims'>Reproduction fidelity: every paper claim</h2>"
+            + (f"<ul>{papers}</ul>" if papers else "") + "<p>From the claims each method section "
+            f"stored (stored results only): {len(claims)} claims — {summary}. Verdict kinds: "
+            f"{esc(', '.join(verdicts.KINDS))}. <a href='claims.csv'>claims.csv</a></p>"
+            "<table class='t prose claims'><colgroup><col style='width:11%'><col style='width:30%'>"
+            "<col style='width:8%'><col style='width:8%'><col style='width:15%'><col style='width:28%'></colgroup>"
+            "<tr><th>paper</th><th>claim (source)</th><th>paper value</th><th>suite value</th>"
+            "<th>setting</th><th>verdict (tolerance, how)</th></tr>" + "".join(rows) + "</table>")
+
+
+def run_matrix_section(runs: pd.DataFrame) -> str:
+    """The full run matrix: one collapsible table per method (all runs in runs.csv)."""
+    cols = ["variant", "scene", "resolution", "net", "protocol", "frame_ms_mean", "frame_ms_p95", "latency_ms_mean",
+            "bandwidth_mbps", "dssim_mean", "zl_dssim_mean", "rays", "backend"]
+    parts = []
+    for method, df in runs.groupby("method"):
+        parts.append(f"<details><summary>{esc(method)}: {len(df)} runs</summary>"
+                     + table_html(df[[c for c in cols if c in df]]) + "</details>")
+    return ("<h2 id='runs'>Run matrix</h2><p>Every complete run, per method (click to open). "
+            "<a href='runs.csv'>runs.csv</a> · <a href='frames.csv'>frames.csv</a></p>" + "".join(parts))
+
+
 def build(results_root, out_dir) -> Path:
     """Writes out_dir/index.html with its PNG plots and CSV tables; returns the index path."""
+    from reports import compare
+    from reports.papers import method_title
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     runs, frames, loaded = load_all(results_root)
-    body = [f"<h1>splitbench report</h1><p>results: <code>{esc(str(Path(results_root).resolve()))}</code>"
+    head = [f"<h1>splitbench report</h1><p>results: <code>{esc(str(Path(results_root).resolve()))}</code>"
             f" — {len(runs)} complete runs</p>"]
+    body = []
     if runs.empty:
-        body.append("<p>No complete runs yet. Run <code>splitbench reproduce --preset smoke</code>.</p>")
+        head.append("<p>No complete runs yet. Run <code>splitbench reproduce --preset smoke</code>.</p>")
     else:
+        record = compare.preset_record(Path(results_root))
+        # Method sections run first: they store the claims the fidelity table gathers.
+        fragments = method_sections(frames, loaded, out_dir=out, results_root=Path(results_root))
+        cross = compare.sections(compare.run_table(loaded), loaded, Path(results_root), out)
+        head.append("<nav>" + " · ".join(f"<a href='#{a}'>{t}</a>" for a, t in (
+            ("answer", "answer"), ("pareto", "Pareto fronts"), ("floors", "noise floors"),
+            ("claims", "paper claims"), ("pages", "method images"), ("hardware", "hardware"), ("growth", "growth"),
+            ("methods", "method sections"), ("runs", "run matrix"))) + "</nav>")
+        body += [cross["answer"], cross["pareto"], cross["floors"], claims_section(gather_claims(out), out),
+                 cross["pages"], cross["hardware"], cross["growth"], "<span id='methods'></span>"]
+        for name, fragment in fragments:
+            body.append(f"<h2>Method: {esc(method_title(name))}</h2>{fragment}")
+
         write_csv(runs, out / "runs.csv")
         write_csv(frames, out / "frames.csv")
-        matrix = runs[["method", "variant", "mode", "scene", "resolution", "net", "protocol", "frames",
-                       "frame_ms_mean", "frame_ms_p95", "latency_ms_mean", "staleness_ms_mean", "bandwidth_mbps",
-                       "ssim_mean", "dssim_mean", "zl_dssim_mean", "rays", "run"]]
-        body.append("<h2>Run matrix</h2><p><a href='runs.csv'>runs.csv</a> · <a href='frames.csv'>frames.csv</a>"
-                    "</p>" + table_html(matrix))
+        body.append(run_matrix_section(runs))
+        labels = focus_labels(runs, record)
+        shown = f"{len(labels)} of {len(runs)} runs shown" + (
+            " (the compare matrix's first scene over TCP)" if record else "")
+        focus_frames = frames[frames["label"].isin(labels)]
+        focus_runs = runs[runs["label"].isin(labels)]
 
         table = breakdown_table(frames)
         write_csv(table, out / "breakdown.csv", index=True)
         write_csv(stage_table(frames), out / "stages.csv", index=True)
         body.append("<h2>Frame-time breakdown</h2><p>Mean ms per frame of each stage and message (hatched) on the "
-                    "critical path; a bar is the mean frame time. <a href='breakdown.csv'>breakdown.csv</a>; every "
-                    "stage, on the critical path or not: <a href='stages.csv'>stages.csv</a></p>"
-                    f"<img src='{plot_breakdown(table, out / 'breakdown.png')}'>")
+                    f"critical path; a bar is the mean frame time; {shown}. <a href='breakdown.csv'>breakdown.csv</a>; "
+                    "every stage, on the critical path or not: <a href='stages.csv'>stages.csv</a></p>"
+                    f"<img src='{plot_breakdown(breakdown_table(focus_frames), out / 'breakdown.png')}'>")
 
         write_csv(runs[["label", "bandwidth_mbps", "bandwidth_down_mbps", "bandwidth_up_mbps"]], out / "bandwidth.csv")
-        body.append("<h2>Bandwidth</h2><p><a href='bandwidth.csv'>bandwidth.csv</a></p>"
-                    f"<img src='{plot_bandwidth(runs, out / 'bandwidth.png')}'>")
+        body.append(f"<h2>Bandwidth</h2><p>{shown}. <a href='bandwidth.csv'>bandwidth.csv</a></p>"
+                    f"<img src='{plot_bandwidth(focus_runs, out / 'bandwidth.png')}'>")
 
         quality = frames[["label", "frame", "ssim", "dssim", "psnr_db", "flip", "zl_ssim", "zl_dssim"]]
         quality = quality[quality["ssim"].notna() | quality["zl_ssim"].notna()]
         write_csv(quality, out / "quality.csv")
         body.append("<h2>SSIM / DSSIM per frame</h2><p>Solid: against the Mitsuba path-traced reference; dashed: "
-                    "against the method's own zero-latency run. <a href='quality.csv'>quality.csv</a></p>"
-                    f"<img src='{plot_quality(frames, out / 'quality.png')}'>")
+                    f"against the method's own zero-latency run; {shown}. <a href='quality.csv'>quality.csv</a></p>"
+                    f"<img src='{plot_quality(focus_frames, out / 'quality.png')}'>")
 
         write_csv(runs[["label", "frame_ms_mean", "dssim_mean", "bandwidth_mbps"]], out / "speed_vs_error.csv")
         body.append("<h2>Speed vs error</h2><p><a href='speed_vs_error.csv'>speed_vs_error.csv</a></p>"
                     f"<img src='{plot_speed_vs_error(runs, out / 'speed_vs_error.png')}'>")
 
-        body.append("<h2>Frames</h2>" + _thumbnails(loaded, out))
-
-        for name, fragment in method_sections(frames, loaded, out_dir=out, results_root=Path(results_root)):
-            body.append(f"<h2>Method: {esc(name)}</h2>{fragment}")
+        body.append("<h2>Frames</h2>" + _thumbnails([r for r in loaded if r["dir"].name in
+                                                     set(focus_runs["run"])], out))
 
         machines = machine_table(loaded)
         write_csv(machines, out / "machines.csv")
         body.append("<h2>Machine and versions</h2><p><a href='machines.csv'>machines.csv</a></p>"
-                    + table_html(machines))
+                    + table_html(_transposed(machines) if len(machines) <= 3 else machines))
     body.append(scenes_section(Path(results_root)))
     body.append(netsim_validation_section(out))
     for name, df in extra_tables():
         body.append(f"<h2>Table: {esc(name)}</h2>" + table_html(df))
-    return fileio.write_text(out / "index.html", _PAGE.format(body="\n".join(body)))
+    return fileio.write_text(out / "index.html", page_html("splitbench report", "\n".join(head + body)))
+
+
+def _transposed(df: pd.DataFrame) -> pd.DataFrame:
+    """A few long rows as columns (field, machine 1, machine 2, ...), so that they fit the page's width."""
+    out = df.T.reset_index()
+    out.columns = ["field"] + [f"machine {k + 1}" for k in range(len(df))]
+    return out
+
+
+def page_html(title: str, body: str) -> str:
+    """A report page: ``body`` in the report's style (every table fits a 1400 px window)."""
+    return _PAGE.format(title=esc(title), body=body)
 
 
 def _thumbnails(loaded: list[dict], out: Path) -> str:
@@ -315,13 +420,23 @@ def _thumbnails(loaded: list[dict], out: Path) -> str:
 
 
 _PAGE = """<!doctype html>
-<html><head><meta charset="utf-8"><title>splitbench report</title>
+<html><head><meta charset="utf-8"><title>{title}</title>
 <style>
-body {{ font-family: sans-serif; margin: 2em; max-width: 1200px; }}
-table.t {{ border-collapse: collapse; font-size: 0.85em; }}
-table.t td, table.t th {{ padding: 2px 8px; border-bottom: 1px solid #ddd; text-align: right; }}
+body {{ font-family: sans-serif; margin: 1.5em; max-width: 1320px; }}
+nav {{ margin: 0 0 1em; }}
+img {{ max-width: 100%; }}
+table.t {{ border-collapse: collapse; font-size: 0.8em; max-width: 100%; }}
+table.t td, table.t th {{ padding: 2px 6px; border-bottom: 1px solid #ddd; text-align: right; }}
+table.t td {{ white-space: nowrap; }} table.prose td {{ white-space: normal; }}
+table.t th {{ background: #f3f3f3; }}
 figure {{ display: inline-block; margin: 0.5em; }} figure img {{ image-rendering: pixelated; width: 320px; }}
-table.prose td {{ text-align: left; vertical-align: top; }}
+table.prose td, table.prose th {{ text-align: left; vertical-align: top; }}
+table.claims {{ width: 100%; table-layout: fixed; }} table.claims td {{ font-size: 0.95em; overflow-wrap: break-word; }}
+table.claims small {{ color: #555; }}
+td.v-reproduces {{ background: #e3f4e1; }} td.v-does {{ background: #fbe3e1; }}
+table.imgs img {{ image-rendering: pixelated; width: 240px; }} table.imgs th {{ font-size: 0.8em; max-width: 240px; }}
+td.na {{ color: #777; font-size: 0.8em; max-width: 240px; }}
+details {{ margin: 0.4em 0; }} summary {{ cursor: pointer; }}
 p.setting {{ margin: 1em 0 0.3em; padding: 2px 6px; background: #eef3f8; display: table; }}
 </style></head><body>
 {body}

@@ -35,9 +35,10 @@ Stages in the order of Table 6.9 (TAA is :mod:`.taa`):
    filtered data to the accumulation buffer", §4.4).
 
 What is filtered is demodulated illumination (radiance / albedo), and the result is multiplied by the albedo again
-in the composition (§6.11), as q2vkpt does. The per-pixel passes (reprojection, spatial variance, a-trous) are
-numba kernels parallel over image rows, the rest is vectorised numpy; the work counters count one tap per pixel
-and kernel tap and pass.
+in the composition (§6.11), as q2vkpt does. The reprojection is a numba kernel parallel over image rows; the spatial
+variance and the spatial a-trous are the suite's shared filters (:func:`suite.core.denoise.spatial_variance`,
+:func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy; the work counters count one tap per
+pixel and kernel tap and pass.
 """
 from __future__ import annotations
 
@@ -47,9 +48,10 @@ import numba
 import numpy as np
 
 from methods.quake_drt.rng import tea_np
+from suite.core import denoise
+from suite.core.denoise import depth_fwidth, luminance, shifted
 
 GRAD_DWN = 3
-LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
 
 @dataclass
@@ -99,41 +101,7 @@ class GradientSamples:
         return GradientSamples(*(getattr(self, f)[keep] for f in ("cur", "prev", "prim", "u", "v", "dist")))
 
 
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    return np.asarray(rgb, np.float32) @ LUMA
-
-
-def _shifted(a: np.ndarray, dy: int, dx: int, fill=0.0) -> np.ndarray:
-    """``out[y, x] = a[y + dy, x + dx]``, ``fill`` outside the image."""
-    h, w = a.shape[:2]
-    out = np.full_like(a, fill)
-    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
-    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
-    if ys.start < ys.stop and xs.start < xs.stop and abs(dy) < h and abs(dx) < w:
-        out[yd, xd] = a[ys, xs]
-    return out
-
-
-def depth_fwidth(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """|grad z| per pixel: the largest depth step to a valid 4-neighbour (a screen-space derivative)."""
-    d = np.where(valid, depth, 0.0).astype(np.float32)
-    out = np.zeros_like(d)
-    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-        ok = _shifted(valid, dy, dx, False)
-        out = np.maximum(out, np.where(ok, np.abs(_shifted(d, dy, dx) - d), 0.0))
-    return out
-
-
-def _whole(e: float) -> int:
-    """``e`` as an int when it is a whole number in [0, 4096] (fast powers), else -1."""
-    return int(e) if float(e).is_integer() and 0 <= e <= 4096 else -1
-
-
-def _kernel(radius: int) -> list[float]:
-    return [1.0, 0.5] if radius == 1 else [1.0, 2.0 / 3.0, 1.0 / 6.0]
-
-
-# --- compiled per-pixel passes (numba, parallel over rows) --------------------------------------------------------
+# --- compiled per-pixel pass (numba, parallel over rows) ---------------------------------------------------------
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _reproject(motion, valid, point, cam_prev, tol, p_valid, p_depth, p_normal, normal, p_color, p_moments, p_hist,
@@ -179,100 +147,6 @@ def _reproject(motion, valid, point, cam_prev, tol, p_valid, p_depth, p_normal, 
                 out_c[y, x, 0], out_c[y, x, 1], out_c[y, x, 2] = c0 / ws, c1 / ws, c2 / ws
                 out_m[y, x, 0], out_m[y, x, 1] = m0 / ws, m1 / ws
                 out_h[y, x] = hs / ws
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _pow(x, e, e_int):
-    """x ** e for x >= 0; by repeated multiplication when e is a whole number (128: 8 products, not a log and an
-    exp per tap)."""
-    if e_int < 0:
-        return x ** e
-    r, b, k = 1.0, x, e_int
-    while k > 0:
-        if k & 1:
-            r *= b
-        b *= b
-        k >>= 1
-    return r
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _spatial_variance(lum, z, n, fw, valid, phi_n, phi_n_int, out):
-    """Luminance variance from a 5x5 bilateral window (normal^phi_n, depth within 2 derivatives per pixel of
-    distance): q2vkpt's estimate where the history is too short (stage 6)."""
-    h, w = lum.shape
-    for y in numba.prange(h):
-        for x in range(w):
-            out[y, x] = 0.0
-            if not valid[y, x]:
-                continue
-            s1 = s2 = ws = 0.0
-            for dy in range(-2, 3):
-                yy = y + dy
-                if yy < 0 or yy >= h:
-                    continue
-                for dx in range(-2, 3):
-                    xx = x + dx
-                    if xx < 0 or xx >= w or not valid[yy, xx]:
-                        continue
-                    if abs(z[yy, xx] - z[y, x]) >= 2.0 * fw[y, x] * max(abs(dx), abs(dy), 1):
-                        continue
-                    dot = n[y, x, 0] * n[yy, xx, 0] + n[y, x, 1] * n[yy, xx, 1] + n[y, x, 2] * n[yy, xx, 2]
-                    wq = _pow(max(dot, 0.0), phi_n, phi_n_int)
-                    lq = lum[yy, xx]
-                    s1 += wq * lq
-                    s2 += wq * lq * lq
-                    ws += wq
-            ws = max(ws, 1e-12)
-            out[y, x] = max(s2 / ws - (s1 / ws) ** 2, 0.0)
-
-
-@numba.njit(cache=True, nogil=True, parallel=True)
-def _atrous_pass(c, v, z, n, fw, valid, step, r, kern, phi_c, phi_n, phi_n_int, phi_z, out_c, out_v):
-    """One a-trous pass (stage 7): edge-stopping weights on luminance (against the 3x3 Gaussian of the variance),
-    depth and normal; colour filtered with the weights, variance with their squares."""
-    h, w = v.shape
-    k00 = kern[0] * kern[0]
-    for y in numba.prange(h):
-        for x in range(w):
-            vg = 0.0
-            for dy in range(-1, 2):
-                yy = y + dy
-                if yy < 0 or yy >= h:
-                    continue
-                for dx in range(-1, 2):
-                    xx = x + dx
-                    if xx < 0 or xx >= w:
-                        continue
-                    vg += v[yy, xx] * ((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
-            lum_c = 0.2126 * c[y, x, 0] + 0.7152 * c[y, x, 1] + 0.0722 * c[y, x, 2]
-            phi_l = phi_c * np.sqrt(max(vg, 0.0) + 1e-10)
-            a0, a1, a2 = c[y, x, 0] * k00, c[y, x, 1] * k00, c[y, x, 2] * k00
-            va = v[y, x] * k00 * k00
-            ws = k00
-            if valid[y, x]:
-                for dy in range(-r, r + 1):
-                    yy = y + dy * step
-                    if yy < 0 or yy >= h:
-                        continue
-                    for dx in range(-r, r + 1):
-                        if dx == 0 and dy == 0:
-                            continue
-                        xx = x + dx * step
-                        if xx < 0 or xx >= w or not valid[yy, xx]:
-                            continue
-                        lum_q = 0.2126 * c[yy, xx, 0] + 0.7152 * c[yy, xx, 1] + 0.0722 * c[yy, xx, 2]
-                        wl = abs(lum_c - lum_q) / phi_l
-                        wz = abs(z[y, x] - z[yy, xx]) / (phi_z * fw[y, x] * step * np.sqrt(dx * dx + dy * dy))
-                        dot = n[y, x, 0] * n[yy, xx, 0] + n[y, x, 1] * n[yy, xx, 1] + n[y, x, 2] * n[yy, xx, 2]
-                        wq = np.exp(-wl - wz) * _pow(max(dot, 0.0), phi_n, phi_n_int) * kern[abs(dx)] * kern[abs(dy)]
-                        a0 += c[yy, xx, 0] * wq
-                        a1 += c[yy, xx, 1] * wq
-                        a2 += c[yy, xx, 2] * wq
-                        va += v[yy, xx] * wq * wq
-                        ws += wq
-            out_c[y, x, 0], out_c[y, x, 1], out_c[y, x, 2] = a0 / ws, a1 / ws, a2 / ws
-            out_v[y, x] = va / (ws * ws)
 
 
 class ASVGF:
@@ -344,8 +218,8 @@ class ASVGF:
 
     # -- 3. gradient image ----------------------------------------------------------------------------------
 
-    def gradient(self, illum: np.ndarray, fwd: GradientSamples) -> np.ndarray:
-        """(ch, cw, 4): delta, max, cell luminance mean and standard deviation."""
+    def gradient(self, illum: np.ndarray, fwd: GradientSamples, st=None) -> np.ndarray:
+        """(ch, cw, 4): delta, max, cell luminance mean and standard deviation (one tap per pixel)."""
         w, h, cw, ch = self.w, self.h, self.cw, self.ch
         lum = luminance(illum.reshape(h, w, 3))
         pad = np.zeros((ch * GRAD_DWN, cw * GRAD_DWN), np.float32)
@@ -361,6 +235,8 @@ class ASVGF:
             cy, cx = (fwd.cur // w) // GRAD_DWN, (fwd.cur % w) // GRAD_DWN
             out[cy, cx, 0] = l_cur - l_prev
             out[cy, cx, 1] = np.maximum(l_cur, l_prev)
+        if st is not None:
+            st.count(taps=w * h)
         return out
 
     # -- 4. gradient a-trous ----------------------------------------------------------------------------------
@@ -373,21 +249,19 @@ class ASVGF:
         for it in range(self.s.gradient_iterations):
             step = 1 << it
             # sigma from the 3x3 neighbourhood of the cell's luminance variance
-            sig = np.zeros_like(var)
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    sig += _shifted(var, dy, dx) * ((0.25 if dx == 0 else 0.125) * (2.0 if dy == 0 else 1.0))
+            # (twice the 3x3 Gaussian, as the thesis code's weights 1/2, 1/4, 1/8 sum to 2)
+            sig = 2.0 * denoise.gaussian3x3(var, np.float32)
             sig = np.maximum(self.s.gradient_sigma * sig, 1e-8)
             acc, wsum, vacc = val.copy(), np.ones_like(lum), var.copy()
             for dy in (-1, 0, 1):
                 for dx in (-1, 0, 1):
                     if dx == 0 and dy == 0:
                         continue
-                    inside = _shifted(np.ones_like(lum), dy * step, dx * step)
-                    lq = _shifted(lum, dy * step, dx * step)
+                    inside = shifted(np.ones_like(lum), dy * step, dx * step)
+                    lq = shifted(lum, dy * step, dx * step)
                     wq = inside * np.exp(-((lum - lq) ** 2) / sig)
-                    acc += _shifted(val, dy * step, dx * step) * wq[..., None]
-                    vacc += _shifted(var, dy * step, dx * step) * wq * wq
+                    acc += shifted(val, dy * step, dx * step) * wq[..., None]
+                    vacc += shifted(var, dy * step, dx * step) * wq * wq
                     wsum += wq
             val = acc / wsum[..., None]
             var = vacc / (wsum * wsum)
@@ -401,7 +275,7 @@ class ASVGF:
         m = lam.copy()
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
-                m = np.maximum(m, _shifted(lam, dy, dx))
+                m = np.maximum(m, shifted(lam, dy, dx))
         full = np.repeat(np.repeat(m, GRAD_DWN, axis=0), GRAD_DWN, axis=1)
         return full[:self.h, :self.w]
 
@@ -453,12 +327,8 @@ class ASVGF:
         var = var_t
         if short.any():
             lum = luminance(illum.reshape(self.h, self.w, 3))
-            valid = guides.valid
-            z = np.ascontiguousarray(guides.filter_depth, np.float32)
-            n = np.ascontiguousarray(guides.filter_normal, np.float32)
-            fw = np.maximum(depth_fwidth(z, valid), 1e-3 * z).astype(np.float32)
-            var_s = np.zeros_like(lum)
-            _spatial_variance(lum, z, n, fw, valid, float(self.s.phi_normal), _whole(self.s.phi_normal), var_s)
+            var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
+                                             float(self.s.phi_normal))
             var = np.where(short, var_s, var_t)
             if st is not None:
                 st.count(taps=self.h * self.w * 25)
@@ -467,29 +337,15 @@ class ASVGF:
     # -- 7. spatial a-trous ------------------------------------------------------------------------------------
 
     def atrous(self, color: np.ndarray, var: np.ndarray, guides: Guides, st=None):
-        """(filtered colour, colour to store as history or None) after the a-trous passes."""
+        """(filtered colour, colour to store as history or None) after the a-trous passes
+        (:func:`suite.core.denoise.atrous` on the filter guides)."""
         s = self.s
-        valid = guides.valid
-        z = guides.filter_depth.astype(np.float32)
-        z = np.where(valid, z, 0.0)
-        n = guides.filter_normal.astype(np.float32)
-        fw = np.maximum(depth_fwidth(z, valid), 1e-8)
-        r = int(s.atrous_radius)
-        kern = _kernel(r)
-        history = None
-        c, v = np.ascontiguousarray(color, np.float32), np.ascontiguousarray(var, np.float32)
-        z, n = np.ascontiguousarray(z, np.float32), np.ascontiguousarray(n, np.float32)
-        fw = fw.astype(np.float32)
-        kern_a = np.asarray(kern, np.float64)
-        for it in range(s.atrous_iterations):
-            out_c, out_v = np.empty_like(c), np.empty_like(v)
-            _atrous_pass(c, v, z, n, fw, valid, 1 << it, r, kern_a, float(s.phi_color), float(s.phi_normal),
-                         _whole(s.phi_normal), float(s.phi_depth), out_c, out_v)
-            c, v = out_c, out_v
-            if s.feedback_tap == it + 1:
-                history = c.copy()
+        settings = denoise.AtrousSettings(s.atrous_iterations, int(s.atrous_radius), float(s.phi_color),
+                                          float(s.phi_normal), float(s.phi_depth))
+        c, _, history = denoise.atrous(color, var, guides.filter_depth, guides.filter_normal, guides.valid,
+                                       settings, s.feedback_tap)
         if st is not None:
-            st.count(taps=self.h * self.w * (2 * r + 1) ** 2 * s.atrous_iterations)
+            st.count(taps=denoise.atrous_taps(self.w, self.h, settings))
         return c, history
 
     # -- end of frame ------------------------------------------------------------------------------------------

@@ -13,7 +13,9 @@ running anything:
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
-    is in use); ``ms = a * megapixels + b`` fitted to the total. Seed 001 Fig. 7.8 measures the same on a GPU.
+    is in use), with the filter taps each stage declares (its work counter, independent of the machine);
+    ``ms = a * megapixels`` fitted through the origin to the total (a positive rate whenever the times are, however
+    noisy two sizes are) and the exponent of ms against pixels. Seed 001 Fig. 7.8 measures the same on a GPU.
 ``lights``
     The direct stage against the light count: every light of the map (no culling), the culled rows (all of their
     lights), and k = 1, 4, 16 random culled lights (uniform and power-proportional at k = 1), at one resolution;
@@ -151,39 +153,61 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int) -> dict:
         raw = p.raw_frame(scene, tracer, t_s, t_s, seeds, fwd)
         fwd = raw.info["fwd"]
         saved = dict(den.prev)
-        times = {}
-        times["gradient"], grad = _median_ms(lambda: den.gradient(raw.illum, fwd), repeats)
-        times["gradient_atrous"], lam = _median_ms(lambda: den.gradient_atrous(grad), repeats)
+        times, taps = {}, {}
+
+        def timed(name, fn):
+            taps[name] = _Taps()
+            fn(taps[name])  # the work counter of one call (the same for every call)
+            times[name], result = _median_ms(lambda: fn(None), repeats)
+            return result
+
+        grad = timed("gradient", lambda st: den.gradient(raw.illum, fwd, st))
+        lam = timed("gradient_atrous", lambda st: den.gradient_atrous(grad, st))
         alag = den.antilag(lam)
-        times["temporal"], (color, moments, hist, _) = _median_ms(
-            lambda: den.temporal(raw.illum, raw.guides, alag), repeats)
-        times["variance"], var = _median_ms(lambda: den.variance(raw.illum, moments, hist, raw.guides), repeats)
-        times["atrous"], (filtered, _) = _median_ms(lambda: den.atrous(color, var, raw.guides), repeats)
+        color, moments, hist, _ = timed("temporal", lambda st: den.temporal(raw.illum, raw.guides, alag, st))
+        var = timed("variance", lambda st: den.variance(raw.illum, moments, hist, raw.guides, st))
+        filtered, _ = timed("atrous", lambda st: den.atrous(color, var, raw.guides, st))
         composed = raw.compose(filtered)
         taa_hist = p.taa.history
 
-        def taa():
+        def taa(st):
             p.taa.history = taa_hist
-            return p.taa(composed, raw.g.motion)
+            return p.taa(composed, raw.g.motion, st)
 
-        times["taa"], _ = _median_ms(taa, repeats)
+        timed("taa", taa)
         den.prev = saved
         mp = res[0] * res[1] / 1e6
         total = sum(v for k, v in times.items() if k != "taa")
         rows.append({"resolution": list(res), "megapixels": mp, **{f"{k}_ms": v for k, v in times.items()},
-                     "denoiser_ms": total, "denoiser_ms_per_mp": total / mp, "taa_ms_per_mp": times["taa"] / mp})
-    mp = np.array([r["megapixels"] for r in rows])
-    ms = np.array([r["denoiser_ms"] for r in rows])
-    fit = {}
-    if len(rows) >= 2:
-        a, b = np.polyfit(mp, ms, 1)
-        pred = a * mp + b
-        ss = ((ms - ms.mean()) ** 2).sum()
-        fit = {"ms_per_mp": float(a), "intercept_ms": float(b),
-               "r2": float(1 - ((ms - pred) ** 2).sum() / ss) if ss > 0 else 1.0,
-               "exponent": float(np.polyfit(np.log(mp), np.log(ms), 1)[0])}
-    return {"scene": scene.name, "repeats": repeats, "rows": rows, "fit": fit,
+                     **{f"{k}_taps": t.taps for k, t in taps.items()},
+                     "denoiser_ms": total, "denoiser_taps": sum(t.taps for k, t in taps.items() if k != "taa"),
+                     "denoiser_ms_per_mp": total / mp, "taa_ms_per_mp": times["taa"] / mp})
+    return {"scene": scene.name, "repeats": repeats, "rows": rows,
+            "fit": fit_ms_per_mp([r["megapixels"] for r in rows], [r["denoiser_ms"] for r in rows]),
             "settings": "defaults (5 gradient and 5 a-trous passes, 3x3 kernel)"}
+
+
+class _Taps:
+    """A stand-in for a stage record that keeps the filter taps a denoiser stage declares."""
+
+    def __init__(self):
+        self.taps = 0
+
+    def count(self, taps: int = 0, **_):
+        self.taps += int(taps)
+
+
+def fit_ms_per_mp(megapixels, ms) -> dict:
+    """``ms = a * megapixels`` by least squares through the origin (every pass costs a fixed number of taps per
+    pixel, so no fixed term is modelled; ``a`` is positive whenever the times are), its R², and the exponent of the
+    log-log fit (1 = linear in the pixel count). Empty with fewer than two sizes or a non-positive time."""
+    mp, t = np.asarray(megapixels, float), np.asarray(ms, float)
+    if len(mp) < 2 or not (np.all(mp > 0) and np.all(t > 0)):
+        return {}
+    a = float((mp * t).sum() / (mp * mp).sum())
+    ss = ((t - t.mean()) ** 2).sum()
+    return {"ms_per_mp": a, "r2": float(1 - ((t - a * mp) ** 2).sum() / ss) if ss > 0 else 1.0,
+            "exponent": float(np.polyfit(np.log(mp), np.log(t), 1)[0]) if np.ptp(mp) > 0 else float("nan")}
 
 
 def bench_lights(scene, tracer, resolution, resolutions, t_s: float, repeats: int) -> dict:
@@ -319,7 +343,7 @@ def format_results(out: dict) -> str:
             lines.append(f"  {w}x{h}: denoiser {row['denoiser_ms']:.1f} ms ({row['denoiser_ms_per_mp']:.0f} ms/MP), "
                          f"{stages}")
         if r["fit"]:
-            lines.append(f"  fit: {r['fit']['ms_per_mp']:.0f} ms/MP + {r['fit']['intercept_ms']:.1f} ms, "
+            lines.append(f"  fit: {r['fit']['ms_per_mp']:.0f} ms/MP (through the origin), "
                          f"R² {r['fit']['r2']:.4f}, exponent {r['fit']['exponent']:.2f}")
     if "lights" in out:
         r = out["lights"]

@@ -27,10 +27,16 @@ light of the row: the same expectation as any k, far less noise), and the displa
 mean (declared outputs ``gt_*``). That work runs outside the timed stages and is cached, so the variants that
 differ only in denoiser, TAA or subsampling share one ground truth.
 
-Placement: only ``local`` exists. The ``streamed`` placement (the same renderer on a server, its frames sent
-to the client as video) is left for the video-streaming baseline: :meth:`QuakeDRT.place` is the one function
-that maps a stage to where it runs; a streamed variant would put every rendering stage on the server and add
-encode / send / decode around it.
+Placement (``placement``; :meth:`QuakeDRT.place` maps a stage to where it runs):
+
+* ``local`` (the thesis): every stage on the client; no messages.
+* ``streamed`` (beyond the thesis, for comparison with the cloud-gaming baseline): the client sends its pose
+  (``pose``, TCP); the server decodes it (``server_receive``) and runs every rendering stage above for that pose,
+  keeping the denoiser's and TAA's histories of this client; the frame is encoded, sent and decoded exactly as the
+  video-streaming baseline does (:func:`suite.core.video.stream_frame`: ``encode`` on the server, the ``video``
+  message through netsim, ``decode`` on the client; UDP loss damages the picture until the next IDR frame). The
+  outputs ``wire_bytes`` ... ``status`` describe the stream; the ground-truth outputs compare what the client
+  shows (the decoded picture).
 """
 from __future__ import annotations
 
@@ -43,8 +49,20 @@ from suite.errors import UserError
 from suite.harness.method import Method
 
 from methods.quake_drt import pipeline as pl
+from suite.core import video
 
-PLACEMENTS = ("local",)
+PLACEMENTS = ("local", "streamed")
+
+
+class _SceneHere:
+    """The scene as the code running now knows it (``ctx.scene``), looked up at every use: the pipeline's stages
+    run on the server in the streamed placement, where the camera knows only the poses that arrived."""
+
+    def __init__(self, ctx):
+        self._ctx = ctx
+
+    def __getattr__(self, name):
+        return getattr(self._ctx.scene, name)
 
 
 class QuakeDRT(Method):
@@ -52,7 +70,9 @@ class QuakeDRT(Method):
 
     name = "quake_drt"
     mode = "sync"
-    uses_network = False  # a local renderer: the zero-latency run would repeat this one
+    # The streamed placement sends messages; each instance says whether its own placement does (local: no
+    # messages, so the zero-latency run would repeat the run and is skipped).
+    uses_network = True
     outputs = {
         "pvs_source": "where the light culling's PVS came from: bsp (the map's), computed, scene, none (no culling)",
         "lights": "lights in the light array (point lights + area lights)",
@@ -82,17 +102,21 @@ class QuakeDRT(Method):
         "detail_near": "denoised / ground-truth mid-scale luminance contrast (3x3 minus 9x9 blur) on the nearer half "
                        "of the pixels",
         "detail_far": "the same on the farther half (below 1: shadow detail lost; seed 001 §7.5, Fig. 7.14)",
+        **{k: f"(streamed) {v}" for k, v in video.STREAM_OUTPUTS.items()},
     }
 
     def __init__(self, params: dict):
         super().__init__(params)
         placement = str(self.params.get("placement", "local"))
         if placement not in PLACEMENTS:
-            raise UserError(f"quake_drt: placement '{placement}' is not available (choose from "
-                            f"{', '.join(PLACEMENTS)}; 'streamed' comes with the video-streaming baseline)")
+            raise UserError(f"quake_drt: unknown placement '{placement}' (choose from {', '.join(PLACEMENTS)})")
         self.placement = placement
+        self.uses_network = placement == "streamed"  # local: the zero-latency run would repeat this one
         self.settings = pl.Settings.from_params(self.params)
+        self.stream_settings = video.StreamSettings.from_params(self.params) if self.uses_network else None
         self.pipeline: pl.Pipeline | None = None
+        self._stream: video.Stream | None = None
+        self._server_prev_t_s = None
 
     # ------------------------------------------------------------------------------------------ life cycle
 
@@ -106,10 +130,12 @@ class QuakeDRT(Method):
     def reset(self) -> None:
         if self.pipeline is not None:
             self.pipeline.reset()
+        self._stream = None
+        self._server_prev_t_s = None
 
     def place(self, stage: str) -> str:
-        """Where a stage runs. ``local``: everything on the client (the hook for a streamed placement)."""
-        return "client"
+        """Where a rendering stage runs: the client (``local``) or the server (``streamed``)."""
+        return "server" if self.placement == "streamed" else "client"
 
     # ----------------------------------------------------------------------------------------------- frame
 
@@ -118,8 +144,24 @@ class QuakeDRT(Method):
         if self.pipeline is None or (self.pipeline.w, self.pipeline.h) != (w, h):
             self.pipeline = pl.Pipeline(self.settings, self.prepared, w, h)
         p = self.pipeline
-        out, denoised, raw, record = p.run_frame(ctx.scene, ctx.tracer, ctx.t_s, ctx.prev_t_s, ctx.seed,
-                                                 stage=lambda name: ctx.stage(name, place=self.place(name)))
+        stage = lambda name: ctx.stage(name, place=self.place(name))  # noqa: E731
+        if self.placement == "streamed":
+            pose_msg = ctx.send_pose(after=[])
+            with ctx.stage("server_receive", place="server", after=["pose"]) as st:
+                t_s, _ = ctx.receive_pose(pose_msg)
+                st.bytes = pose_msg.size_bytes
+            # The server renders the pose it received; its motion vectors and histories go back to the previous
+            # pose it received from this client.
+            rendered, denoised, raw, record = p.run_frame(_SceneHere(ctx), ctx.tracer, t_s, self._server_prev_t_s,
+                                                          ctx.seed, stage=stage)
+            self._server_prev_t_s = t_s
+            if self._stream is None:
+                fps = float(ctx.params.get("client_fps") or ctx.scene.camera.fps)
+                self._stream = video.Stream(self.stream_settings, w, h, fps)
+            out = video.stream_frame(ctx, self._stream, rendered)
+        else:
+            out, denoised, raw, record = p.run_frame(ctx.scene, ctx.tracer, ctx.t_s, ctx.prev_t_s, ctx.seed,
+                                                     stage=stage)
         # Everything below is measurement, not rendering: outside the stages, so neither timed nor counted.
         record.update(p.audit(ctx.scene, ctx.tracer, raw, ctx.seed))
         record.update(self._ground_truth(ctx, p, out, denoised, raw))
@@ -205,7 +247,7 @@ def detail_ratios(test: np.ndarray, gt: np.ndarray, guides) -> dict:
     out gives ratios below 1; the thesis sees the loss grow with distance (§7.5, Fig. 7.14)."""
     from scipy.ndimage import uniform_filter
 
-    from methods.quake_drt.asvgf import luminance
+    from suite.core.denoise import luminance
 
     def band(img):
         lum = luminance(img).astype(np.float64)

@@ -283,6 +283,7 @@ class Pipeline:
             ok = albedo > 1e-6
             illum = np.where(ok, radiance / np.where(ok, albedo, 1.0), radiance)
             albedo = np.where(ok, albedo, np.where(radiance > 0, 1.0, albedo))
+            guides = self._guides(g, surf, sec, scene, t_s)  # the filters' guides, from what this frame traced
             st.pixels = n
         emission = surf.emission.copy()
         if sec is not None:
@@ -291,7 +292,6 @@ class Pipeline:
                     selected=stats.selected, shadow_rays=stats.rays, shadow_rays_visible=stats.visible,
                     points_unclustered=int((rows == table.all_row).sum()) if s.cull_lights and table.n_clusters else 0,
                     rows=rows, points=pts, lights_obj=lights)
-        guides = self._guides(g, surf, sec, scene, t_s)
         return RawFrame(g, surf, np.asarray(seeds, np.uint32), illum.reshape(h, w, 3), albedo.reshape(h, w, 3),
                         emission.reshape(h, w, 3), guides, info)
 
@@ -337,8 +337,7 @@ class Pipeline:
         denoised = None
         if s.denoiser:
             with stage("asvgf_gradient") as st:
-                grad = den.gradient(raw.illum, fwd)
-                st.count(taps=w * h)
+                grad = den.gradient(raw.illum, fwd, st)
             with stage("asvgf_gradient_atrous") as st:
                 lam = den.gradient_atrous(grad, st)
                 alag = den.antilag(lam)

@@ -40,7 +40,7 @@ NOT_RECORDED = "(not recorded)"
 WORK_RATES = ("work_ns_per_ray", "work_ns_per_pixel", "work_ns_per_tap", "work_ns_per_point")
 
 CONFIG_PARAMS = ("num_random_dl", "spp", "cull_lights", "denoiser", "taa", "light_sampling", "gt_frames",
-                 "area_light_unit", "antialiasing", "soft_shadows")
+                 "area_light_unit", "antialiasing", "soft_shadows", "placement")
 
 
 # ------------------------------------------------------------------------------------------- stored results
@@ -345,7 +345,7 @@ def general_claims(bench: dict | None) -> list[Claim]:
             setting=st, suite_source="bench", method=METHOD,
             note=f"Bench: ms ∝ pixels^{a['fit']['exponent']:.2f}, {a['fit']['ms_per_mp']:.0f} ms per megapixel "
                  f"on this CPU (numba kernels on 2 cores)."))
-        ms_1080p = a["fit"]["ms_per_mp"] * 1920 * 1080 / 1e6 + a["fit"]["intercept_ms"]
+        ms_1080p = a["fit"]["ms_per_mp"] * 1920 * 1080 / 1e6
     else:
         ms_1080p = None
     out.append(verdicts.not_measurable(
@@ -437,7 +437,7 @@ def _bench_part(bench, files: SectionFiles) -> str:
         out.append(_caption(a["scene"], a.get("backend", NOT_RECORDED), "several resolutions",
                             f", median of {a['repeats']}")
                    + f"<p>Bench: A-SVGF stages and TAA, ms (Fig. 7.8 measures the same on a GPU). Fit: "
-                     f"{fit.get('ms_per_mp', float('nan')):.0f} ms per megapixel + {fit.get('intercept_ms', 0):.1f} ms"
+                     f"{fit.get('ms_per_mp', float('nan')):.0f} ms per megapixel (through the origin)"
                      f", R² {fit.get('r2', float('nan')):.4f}." + files.csv(t, "bench_asvgf.csv") + "</p>"
                    + table_html(t))
     lt = bench.get("lights")
@@ -455,6 +455,50 @@ def _bench_part(bench, files: SectionFiles) -> str:
     return "".join(out)
 
 
+def split_placements(frames: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(the thesis's local runs on the ideal network, the streamed runs). A local run sends nothing, so its runs on
+    other networks (the cross-method matrix) repeat it and are left out of the thesis's claims."""
+    placement = _col(frames, "p_placement").fillna("local").astype(str)
+    net = frames["net"].astype(str) if "net" in frames else pd.Series("ideal", index=frames.index)
+    return frames[(placement != "streamed") & (net == "ideal")], frames[placement == "streamed"]
+
+
+def streamed_table(streamed: pd.DataFrame) -> pd.DataFrame:
+    """Per streamed run (beyond the thesis): bytes per frame, the latency chain (frame 0 left out: no history,
+    first encode) and how many frames the client showed damaged or frozen."""
+    rows = []
+    for (net, protocol, run), d in streamed.groupby(["net", "protocol", "run"], sort=True):
+        rest = d[d["frame"] > 0] if (d["frame"] > 0).any() else d
+        num = {c: pd.to_numeric(_col(rest, c), errors="coerce") for c in
+               ("info_wire_bytes", "latency_ms", "server_ms", "stage_encode_ms", "net_video_ms", "stage_decode_ms",
+                "zl_psnr_db")}
+        status = _col(d, "info_status").astype(str)
+        psnr = num["zl_psnr_db"].dropna()
+        rows.append({"net": net, "protocol": protocol, "frames": int(len(d)),
+                     "wire bytes/frame": num["info_wire_bytes"].mean(), "latency ms": num["latency_ms"].mean(),
+                     "latency p95 ms": num["latency_ms"].quantile(0.95), "server ms": num["server_ms"].mean(),
+                     "encode ms": num["stage_encode_ms"].mean(), "video net ms": num["net_video_ms"].mean(),
+                     "decode ms": num["stage_decode_ms"].mean(), "damaged": int((status == "damaged").sum()),
+                     "frozen": int((status == "frozen").sum()),
+                     "PSNR vs lossless stream dB": float(psnr[np.isfinite(psnr)].mean()) if np.isfinite(psnr).any()
+                     else (math.inf if len(psnr) else math.nan)})
+    return pd.DataFrame(rows)
+
+
+def _streamed_part(streamed: pd.DataFrame, files: SectionFiles) -> str:
+    if streamed.empty:
+        return ""
+    out = ["<h4>Streamed placement (beyond the thesis)</h4>"]
+    for scene, backend, res, df in settings(streamed):
+        t = streamed_table(df)
+        name = f"streamed_{scene}_{backend}_{res}".replace(":", "_").replace("@", "_")
+        out.append(_caption(scene, backend, res) + "<p>Run: the same renderer on the server for the pose the client "
+                   "sent, streamed as low-latency video (suite.core.video); latency = pose up + server render + "
+                   "encode + video down + decode, means over frames 1 on; PSNR against the same stream over a "
+                   "lossless network (inf: identical)." + files.csv(t, f"{name}.csv") + "</p>" + table_html(t))
+    return "".join(out)
+
+
 # ------------------------------------------------------------------------------------------------- section
 
 def claims(frames: pd.DataFrame, bench: dict | None = None) -> list[Claim]:
@@ -466,7 +510,7 @@ def claims(frames: pd.DataFrame, bench: dict | None = None) -> list[Claim]:
 
 
 def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None) -> str:
-    frames = prepare(results_df, run_dirs)
+    frames, streamed = split_placements(prepare(results_df, run_dirs))
     files = SectionFiles(out_dir, SUBDIR)
     bench = load_bench("quake_drt", run_dirs, results_root)
     out = ["<h3>Seed 001 — quake_drt</h3>",
@@ -503,5 +547,6 @@ def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None)
                      "ground-truth frames." + files.csv(t, f"{name}.csv") + "</p>" + table_html(t)
                      + _images(df, run_dirs, files))
     out.append("".join(parts) if parts else _NO_RUNS)
+    out.append(_streamed_part(streamed, files))
     out.append(_bench_part(bench, files))
     return "\n".join(out)

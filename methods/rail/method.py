@@ -121,6 +121,8 @@ class ClientGrid:
 class Rail(Method):
     name = "rail"
     mode = "async"
+    # Direct light on the client plus diffuse indirect light from the irradiance cloud: multi-bounce transport.
+    light_transport = "global"
     outputs = {
         "cache_ready": "the client holds G (the initial transfer arrived intact)",
         "fallback_pixels": "pixels shaded with the ambient function F_a·AO (eq. 2 was 0/0, or dynamic geometry)",

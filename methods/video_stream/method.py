@@ -9,8 +9,11 @@ place       stage / message     what it does
 ==========  ==================  =================================================================================
 up          ``pose``            the client's camera (the standard pose message, TCP)
 server      ``server_receive``  decodes the pose; the server renders only poses it received
-server      ``render``          the frame: the suite's material kernel (direct light from point and area lights,
-                                mirror / glass chains, glossy and alpha-tested surfaces; suite.core.specular)
+server      ``render``          the frame: ``renderer = "materials"`` (default), the suite's material kernel (direct
+                                light from point and area lights, mirror / glass chains, glossy and alpha-tested
+                                surfaces; suite.core.specular); ``renderer = "path"``, Mitsuba path tracing at
+                                ``path_spp`` samples per pixel (:mod:`.pathtrace`)
+server      ``denoise``         (path, ``path_denoise``) G-buffer and the shared a-trous filter (suite.core.denoise)
 server      ``encode``          display transform to 8-bit sRGB, x264/x265 with zerolatency, no B-frames, slices
                                 capped at the datagram size; under UDP, RTP-like datagrams (see :mod:`.video`)
 down        ``video``           the encoded frame through netsim
@@ -18,10 +21,10 @@ client      ``decode``          reassembles the NAL units that arrived (UDP: a N
                                 dropped), decodes, converts back to linear radiance for the metrics
 ==========  ==================  =================================================================================
 
-Under UDP a lost datagram damages the slices it carried; the decoder conceals them from its reference picture,
-and the damage propagates through predicted frames until the next IDR frame (``keyint``) or, with
-``intra_refresh``, until a full refresh cycle of ``keyint`` frames has arrived intact. A frame from which the
-decoder produces no picture leaves the previous one on screen (frozen). Declared outputs count both.
+The encode / send / decode part is :func:`suite.core.video.stream_frame` (shared with the streamed placement of
+local renderers): under UDP a lost datagram damages the slices it carried, the damage propagates through
+predicted frames until the next IDR frame or a full intra-refresh wave, and a frame the decoder makes no picture
+from leaves the previous one on screen (frozen). Declared outputs count both.
 
 The zero-latency run encodes and decodes too (the codec is part of the method) but over the ideal network.
 """
@@ -32,73 +35,44 @@ import numpy as np
 from suite.errors import UserError
 from suite.harness.method import Method
 
-from suite.core import video
+from suite.core import denoise, video
 
-STATUSES = ("ok", "damaged", "frozen")
+from methods.video_stream import pathtrace
 
-
-def _nal_types(codec: str, bitstream: bytes) -> set[int]:
-    types = set()
-    for nal in video.nal_units(bitstream):
-        i = 3 if nal[2] == 1 else 4
-        if len(nal) > i:
-            types.add(nal[i] & 0x1F if codec == "h264" else (nal[i] >> 1) & 0x3F)
-    return types
-
-
-def _has_idr(codec: str, bitstream: bytes) -> bool:
-    # H.264 IDR slice: NAL type 5 (ITU-T H.264 Table 7-1); HEVC IDR_W_RADL / IDR_N_LP: 19, 20 (H.265 Table 7-1).
-    idr = {5} if codec == "h264" else {19, 20}
-    return bool(_nal_types(codec, bitstream) & idr)
+RENDERERS = ("materials", "path")
 
 
 class VideoStream(Method):
     name = "video_stream"
     mode = "sync"
     uses_network = True
-    outputs = {"wire_bytes": "bytes of the encoded frame on the wire (with datagram headers under UDP)",
-               "video_bytes": "bytes of the encoded bitstream of the frame",
-               "keyframe": "the encoder made an IDR frame",
-               "nal_lost": "NAL units of the frame that did not arrive whole (-1: nothing of the frame arrived)",
-               "status": "ok | damaged (decoded, but it or a reference lost data) | frozen (previous picture shown)"}
+    outputs = dict(video.STREAM_OUTPUTS)
 
     def __init__(self, params: dict):
         super().__init__(params)
         p = self.params
-        self.codec = video.check_codec(str(p.get("codec", "h264")))
-        self.bitrate_mbps = float(p.get("bitrate_mbps", 20.0))
-        self.crf = float(p.get("crf", 23.0))
-        if self.bitrate_mbps < 0 or not 0 <= self.crf <= 51:
-            raise UserError(f"bitrate_mbps must be >= 0 and crf in 0..51, got {self.bitrate_mbps}, {self.crf}")
-        self.keyint = int(p.get("keyint", 60))
-        if self.keyint < 1:
-            raise UserError(f"keyint must be >= 1, got {self.keyint}")
-        self.intra_refresh = bool(p.get("intra_refresh", False))
-        if self.intra_refresh and self.codec != "h264":
-            raise UserError("intra_refresh is an x264 option; use codec = \"h264\"")
-        self.preset = str(p.get("preset", "veryfast"))
-        self.mtu_bytes = int(p.get("mtu_bytes", 1200))
+        self.stream_settings = video.StreamSettings.from_params(p)
+        self.renderer = str(p.get("renderer", "materials"))
+        if self.renderer not in RENDERERS:
+            raise UserError(f"video_stream: unknown renderer '{self.renderer}' (choose from {', '.join(RENDERERS)})")
+        # the material kernel is direct light with specular chains; the path tracer is global illumination
+        self.light_transport = "global" if self.renderer == "path" else "direct"
         self.max_bounces = int(p.get("max_bounces", 2))
         self.area_samples = int(p.get("area_samples", 4))
-        self.exposure = float(p.get("exposure", 1.0))
-        if self.exposure <= 0:
-            raise UserError(f"exposure must be > 0, got {self.exposure}")
+        self.path_spp = int(p.get("path_spp", 4))
+        self.path_max_depth = int(p.get("path_max_depth", 8))
+        self.path_denoise = bool(p.get("path_denoise", True))
+        self.atrous = denoise.AtrousSettings(iterations=int(p.get("path_atrous_iterations", 5)))
+        if self.path_spp < 1 or self.path_max_depth < 1 or self.atrous.iterations < 0:
+            raise UserError(f"path_spp and path_max_depth must be >= 1, path_atrous_iterations >= 0, got "
+                            f"{self.path_spp}, {self.path_max_depth}, {self.atrous.iterations}")
         self.reset()
 
     def reset(self) -> None:
-        self._encoder: video.Encoder | None = None
-        self._decoder: video.Decoder | None = None
-        self._last: np.ndarray | None = None
-        self._damaged = False
-        self._clean_run = 0
-
-    def _fps(self, ctx) -> float:
-        return float(ctx.params.get("client_fps") or ctx.scene.camera.fps)
+        self._stream: video.Stream | None = None
 
     def frame(self, ctx) -> np.ndarray:
         w, h = ctx.resolution
-        udp = ctx.protocol == "udp"
-        fps = self._fps(ctx)
         pose_msg = ctx.send_pose(after=[])
 
         with ctx.stage("server_receive", place="server", after=["pose"]) as st:
@@ -106,51 +80,26 @@ class VideoStream(Method):
             st.bytes = pose_msg.size_bytes
 
         with ctx.stage("render", place="server") as st:
-            from suite.core.specular import render_materials
-
-            image = render_materials(ctx.scene, ctx.tracer, t_s, (w, h), max_bounces=self.max_bounces,
-                                     area_samples=self.area_samples, seed=ctx.seed).image
-            st.pixels = w * h
-
-        if self._encoder is None:
-            self._encoder = video.Encoder(self.codec, w, h, fps, self.bitrate_mbps, self.crf, self.keyint,
-                                          self.intra_refresh, self.preset, self.mtu_bytes - video.HEADER_BYTES)
-            self._decoder = video.Decoder(self.codec, w, h)
-        with ctx.stage("encode", place="server") as st:
-            encoded = self._encoder.encode(video.to_video(image, self.exposure))
-            packets = video.packetise(ctx.index, encoded.data, self.mtu_bytes) if udp else None
-            payload = packets.message if udp else encoded.data
-            st.bytes = len(payload)
-            st.count(codec_bytes=w * h * 3 // 2 + len(encoded.data))
-        msg = ctx.send("video", payload if payload else b"\0", direction="down")
-
-        with ctx.stage("decode", place="client", after=["video"]) as st:
-            data = msg.data
-            if udp:
-                bitstream, _, nal_lost = video.reassemble(ctx.index, data, packets.spans, msg.lost_ranges)
+            if self.renderer == "path":
+                traced = pathtrace.path_trace(ctx.scene, t_s, (w, h), self.path_spp, self.path_max_depth, ctx.seed)
+                image = traced.noisy
+                st.pixels = w * h * self.path_spp  # Mitsuba's rays are not the suite tracer's: samples count
             else:
-                # TCP delivers the whole frame or, past the timeout, nothing the client waited for
-                bitstream, nal_lost = (data, 0) if msg.complete else (b"", -1)
-            rgb = self._decoder.decode(bitstream)
-            st.count(codec_bytes=w * h * 3 // 2 + len(bitstream))
-            st.bytes = len(bitstream)
-            if nal_lost != 0:
-                self._damaged, self._clean_run = True, 0
-            elif _has_idr(self.codec, bitstream):
-                self._damaged, self._clean_run = False, 0
-            else:
-                self._clean_run += 1
-                if self.intra_refresh and self._clean_run >= self.keyint:
-                    self._damaged = False  # a whole refresh wave arrived intact
-            if rgb is None:
-                status = "frozen"
-                rgb = self._last if self._last is not None else np.zeros((h, w, 3), np.uint8)
-            else:
-                status = "damaged" if self._damaged else "ok"
-                self._last = rgb
-            out = video.from_video(rgb, self.exposure)
-            st.pixels = w * h
+                from suite.core.specular import render_materials
 
-        ctx.record(wire_bytes=len(payload), video_bytes=len(encoded.data), keyframe=bool(encoded.keyframe),
-                   nal_lost=int(nal_lost), status=status)
-        return out
+                image = render_materials(ctx.scene, ctx.tracer, t_s, (w, h), max_bounces=self.max_bounces,
+                                         area_samples=self.area_samples, seed=ctx.seed).image
+                st.pixels = w * h
+        if self.renderer == "path" and self.path_denoise:
+            with ctx.stage("denoise", place="server") as st:
+                from suite.core.gbuffer import render_gbuffer
+
+                g = render_gbuffer(ctx.scene, ctx.tracer, t_s, (w, h))
+                image = pathtrace.denoise_frame(traced, g, self.atrous)
+                st.pixels = w * h
+                st.count(taps=denoise.atrous_taps(w, h, self.atrous))
+
+        if self._stream is None:
+            fps = float(ctx.params.get("client_fps") or ctx.scene.camera.fps)
+            self._stream = video.Stream(self.stream_settings, w, h, fps)
+        return video.stream_frame(ctx, self._stream, image)

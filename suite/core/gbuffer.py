@@ -117,13 +117,150 @@ def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return ((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10 + (1 - fx) * fy * t01 + fx * fy * t11).astype(np.float32)
 
 
+_compiled = None  # the numba versions of the per-hit passes below, compiled on first use
+
+
+def _attributes(positions, normals, faces, w0, w1, w2, ray_o, ray_d, use_ray, p, ng, ns):
+    """Per hit: float64 position (barycentric, or the ray's intersection with the triangle's plane), unit geometric
+    normal and interpolated shading normal. Dot products sum as ``np.einsum("ij,ij->i")`` does: (x + z) + y."""
+    for i in range(len(w0)):
+        f0, f1, f2 = faces[i, 0], faces[i, 1], faces[i, 2]
+        t0x, t0y, t0z = np.float64(positions[f0, 0]), np.float64(positions[f0, 1]), np.float64(positions[f0, 2])
+        t1x, t1y, t1z = np.float64(positions[f1, 0]), np.float64(positions[f1, 1]), np.float64(positions[f1, 2])
+        t2x, t2y, t2z = np.float64(positions[f2, 0]), np.float64(positions[f2, 1]), np.float64(positions[f2, 2])
+        e1x, e1y, e1z = t1x - t0x, t1y - t0y, t1z - t0z
+        e2x, e2y, e2z = t2x - t0x, t2y - t0y, t2z - t0z
+        gx, gy, gz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        glen = max(np.sqrt((gx * gx + gy * gy) + gz * gz), 1e-30)
+        gx, gy, gz = gx / glen, gy / glen, gz / glen
+        a, b, c = w0[i], w1[i], w2[i]
+        px = (t0x * a + t1x * b) + t2x * c
+        py = (t0y * a + t1y * b) + t2y * c
+        pz = (t0z * a + t1z * b) + t2z * c
+        if use_ray:
+            denom = (ray_d[i, 0] * gx + ray_d[i, 2] * gz) + ray_d[i, 1] * gy
+            if abs(denom) > 1e-12:
+                t_plane = ((t0x - ray_o[i, 0]) * gx + (t0z - ray_o[i, 2]) * gz) + (t0y - ray_o[i, 1]) * gy
+                t_plane = t_plane / denom
+                px = ray_o[i, 0] + t_plane * ray_d[i, 0]
+                py = ray_o[i, 1] + t_plane * ray_d[i, 1]
+                pz = ray_o[i, 2] + t_plane * ray_d[i, 2]
+        nx = (np.float64(normals[f0, 0]) * a + np.float64(normals[f1, 0]) * b) + np.float64(normals[f2, 0]) * c
+        ny = (np.float64(normals[f0, 1]) * a + np.float64(normals[f1, 1]) * b) + np.float64(normals[f2, 1]) * c
+        nz = (np.float64(normals[f0, 2]) * a + np.float64(normals[f1, 2]) * b) + np.float64(normals[f2, 2]) * c
+        nlen = np.sqrt((nx * nx + ny * ny) + nz * nz)
+        if nlen > 1e-12:
+            nsafe = max(nlen, 1e-30)
+            nx, ny, nz = nx / nsafe, ny / nsafe, nz / nsafe
+        else:
+            nx, ny, nz = gx, gy, gz
+        p[i, 0], p[i, 1], p[i, 2] = px, py, pz
+        ng[i, 0], ng[i, 1], ng[i, 2] = gx, gy, gz
+        ns[i, 0], ns[i, 1], ns[i, 2] = nx, ny, nz
+
+
+def _facing(ng, ns, dirs, ng_view, ns_view, front):
+    """Per hit: normals turned toward the viewer (np.sign of n . d, 0 counted as +1) and whether ``ng`` faced it."""
+    for i in range(len(ng)):
+        dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
+        s = (ng[i, 0] * dx + ng[i, 2] * dz) + ng[i, 1] * dy
+        flip = -1.0 if s < 0.0 else 1.0
+        front[i] = flip < 0.0
+        vx, vy, vz = -flip * ng[i, 0], -flip * ng[i, 1], -flip * ng[i, 2]
+        ng_view[i, 0], ng_view[i, 1], ng_view[i, 2] = vx, vy, vz
+        back = ((ns[i, 0] * vx + ns[i, 2] * vz) + ns[i, 1] * vy) < 0.0
+        for k in range(3):
+            ns_view[i, k] = -ns[i, k] if back else ns[i, k]
+
+
+def _scatter(dst, idx, src):
+    """``dst[idx] = src`` for (N, 3) rows, cast to ``dst``'s type as numpy's assignment casts."""
+    for i in range(len(idx)):
+        for k in range(3):
+            dst[idx[i], k] = src[i, k]
+
+
+def _motion(motion, idx, lx, ly, lz, tan_x, aspect, width, height):
+    """``motion[idx] = float32(project(...) - pixel centres)`` of row-major pixel indices ``idx``, from the view-space
+    coordinates ``lx, ly, lz`` of the points (:func:`project`'s expressions in their order)."""
+    for i in range(len(idx)):
+        z = lz[i] if abs(lz[i]) > 1e-12 else 1e-12
+        x = 0.5 * (1.0 + lx[i] / (z * tan_x)) * width
+        y = 0.5 * (1.0 - ly[i] * aspect / (z * tan_x)) * height
+        motion[idx[i], 0] = np.float32(x - (np.float64(idx[i] % width) + 0.5))
+        motion[idx[i], 1] = np.float32(y - (np.float64(idx[i] // width) + 0.5))
+
+
+def _motion_vectors(motion, idx, points, pose, fov_deg: float, width: int, height: int) -> None:
+    """``motion[idx]``: where float64 world ``points`` project in the frame of ``pose`` minus their pixel centres
+    (:func:`project`: its matrix products, then one compiled pass)."""
+    forward, right, up = pose.basis()
+    rel = np.asarray(points, np.float64) - np.asarray(pose.position, np.float64)
+    tan_x = np.tan(np.radians(fov_deg) / 2.0)
+    _kernels()[3](motion, idx, rel @ right, rel @ up, rel @ forward, float(tan_x), width / height, int(width),
+                  int(height))
+
+
+def _scatter_rows(dst, idx, src) -> None:
+    """``dst[idx] = src`` for (N, 3) rows in one compiled pass (numpy's fancy-index assignment of rows is slow)."""
+    _kernels()[2](dst, idx, np.ascontiguousarray(src))
+
+
+def _kernels():
+    """:func:`_attributes`, :func:`_facing`, :func:`_scatter` and :func:`_motion` compiled (numba, one pass over the hits, compiled on first use):
+    every float64 operation in the order of the numpy expressions of :func:`surface_attributes_reference` and of
+    the Dr.Jit G-buffer, so the three give the same bits."""
+    global _compiled
+    if _compiled is None:
+        import numba
+
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+        _compiled = (jit(_attributes), jit(_facing), jit(_scatter), jit(_motion))
+    return _compiled
+
+
 def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=None):
     """Interpolated position, geometric and shading normals, albedo and emission for hit records.
 
     With float64 rays (``ray_o``, ``ray_d``) the position is the exact intersection of the ray with the hit
     triangle's plane, computed in float64: the tracers' float32 distance carries an error that grows with the
     distance from the origin, which would shift shadow edges in scenes far from the origin.
+
+    Position and normals come from one compiled pass over the hits (:func:`_kernels`), with the bits of
+    :func:`surface_attributes_reference`.
     """
+    faces = np.ascontiguousarray(scene.faces[prim])
+    n = len(faces)
+    w0 = np.asarray(1.0 - u - v).astype(np.float64)  # in the barycentrics' own precision, then float64
+    w1, w2 = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    p, ng, ns = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    use_ray = ray_o is not None
+    ro = np.ascontiguousarray(ray_o, np.float64) if use_ray else np.zeros((1, 3))
+    rd = np.ascontiguousarray(ray_d, np.float64) if use_ray else np.zeros((1, 3))
+    _kernels()[0](np.ascontiguousarray(positions), np.ascontiguousarray(normals), faces, w0, w1, w2, ro, rd, use_ray,
+                  p, ng, ns)
+    albedo, emission = _materials(scene, faces, prim, w0, w1, w2)
+    return p, ng, ns, albedo, emission
+
+
+def _materials(scene, faces, prim, w0, w1, w2):
+    """(albedo, emission) float32 of hits on faces ``faces`` (indices ``prim``) at barycentrics w0, w1, w2."""
+    mat = scene.face_material[prim]
+    albedo = scene.face_albedo()[prim].astype(np.float32)
+    for mid, m in enumerate(scene.materials):
+        if m.albedo_texture is not None:
+            sel = mat == mid
+            if sel.any():
+                w = np.stack([w0[sel], w1[sel], w2[sel]], axis=-1)[..., None]
+                uv = (scene.uvs[faces[sel]].astype(np.float64) * w).sum(axis=1)
+                albedo[sel] = lookup_texture(m.albedo_texture, uv)
+    emission_table = np.stack([m.emission for m in scene.materials]).astype(np.float32)
+    return albedo, emission_table[mat]
+
+
+def surface_attributes_reference(scene, positions, normals, prim, u, v, ray_o=None, ray_d=None):
+    """:func:`surface_attributes` as whole-array numpy expressions (the reference its compiled pass is tested
+    against)."""
     faces = scene.faces[prim]
     w = np.stack([1.0 - u - v, u, v], axis=-1).astype(np.float64)[..., None]
     tri = positions[faces].astype(np.float64)
@@ -138,16 +275,18 @@ def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=
     ns = (normals[faces].astype(np.float64) * w).sum(axis=1)
     ns_len = np.linalg.norm(ns, axis=-1, keepdims=True)
     ns = np.where(ns_len > 1e-12, ns / np.maximum(ns_len, 1e-30), ng)
-    mat = scene.face_material[prim]
-    albedo = scene.face_albedo()[prim].astype(np.float32)
-    for mid, m in enumerate(scene.materials):
-        if m.albedo_texture is not None:
-            sel = mat == mid
-            if sel.any():
-                uv = (scene.uvs[faces[sel]].astype(np.float64) * w[sel]).sum(axis=1)
-                albedo[sel] = lookup_texture(m.albedo_texture, uv)
-    emission_table = np.stack([m.emission for m in scene.materials]).astype(np.float32)
-    return p, ng, ns, albedo, emission_table[mat]
+    albedo, emission = _materials(scene, faces, prim, w[:, 0, 0], w[:, 1, 0], w[:, 2, 0])
+    return p, ng, ns, albedo, emission
+
+
+def facing(ng, ns, dirs):
+    """Both normals turned toward the viewer (surfaces are shaded on the side they are seen from):
+    (ng_view float32, ns_view float32, front_facing bool: the geometric normal already faced the camera)."""
+    n = len(ng)
+    ng_view, ns_view, front = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, bool)
+    _kernels()[1](np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64),
+                  np.ascontiguousarray(dirs), ng_view, ns_view, front)
+    return ng_view, ns_view, front
 
 
 def has_device(tracer) -> bool:
@@ -213,27 +352,17 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
         normals = scene.normals_at(t_s)
         p, ng, ns, alb, em = surface_attributes(scene, positions, normals, hits.prim[idx], hits.u[idx], hits.v[idx],
                                                 o64[idx], d64[idx])
-        d = dirs[idx].astype(np.float64)
-        # Face both normals toward the viewer: surfaces are shaded on the side they are seen from.
-        flip = np.sign(np.einsum("ij,ij->i", ng, d))[:, None]
-        flip[flip == 0] = 1.0
-        front_facing = flip[:, 0] < 0  # the geometric normal already faced the camera
-        ng_view = -flip * ng
-        ns_view = np.where(np.einsum("ij,ij->i", ns, ng_view)[:, None] < 0, -ns, ns)
-        position[idx] = p
-        geo[idx] = ng_view
-        normal[idx] = ns_view
-        albedo[idx] = alb
+        ng_view, ns_view, front_facing = facing(ng, ns, dirs[idx])
+        for dst, src in ((position, p), (geo, ng_view), (normal, ns_view), (albedo, alb)):
+            _scatter_rows(dst, idx, src)
         # Area emitters emit on the side their normal points to (Mitsuba's `area` is one-sided).
         emission[idx] = np.where(front_facing[:, None], em, 0.0)
     motion = np.zeros((n, 2), np.float32)
     if prev_t_s is not None and len(idx):
-        prev_points = position[idx].astype(np.float64)
+        prev_points = p
         if scene.object_animations:
             prev_points = _points_at_previous_time(scene, hits.prim[idx], prev_points, t_s, prev_t_s)
-        prev_xy, _ = project(prev_points, scene.camera.pose_at(prev_t_s), scene.camera.fov_deg, width, height)
-        cur_xy = np.stack([(idx % width) + 0.5, (idx // width) + 0.5], axis=-1)
-        motion[idx] = (prev_xy - cur_xy).astype(np.float32)
+        _motion_vectors(motion, idx, prev_points, scene.camera.pose_at(prev_t_s), scene.camera.fov_deg, width, height)
     depth = np.where(valid, hits.t, np.inf).astype(np.float32)
     material = np.full(n, -1, np.int32)
     kind = np.full(n, -1, np.int8)

@@ -11,8 +11,13 @@ Display transform (:func:`to_display`), used by SSIM, DSSIM, PSNR, FLIP and PNG 
 ``exposure`` is a linear multiplier (2.0 = one stop brighter), not a number of stops. The sRGB encoding is
 IEC 61966-2-1 as implemented by colour-science (``colour.cctf_encoding(x, function="sRGB")``).
 
-NRMSE is the exception: it is computed on the linear images, because it measures radiance error, which
-clipping and the sRGB curve would hide in bright regions and exaggerate in dark ones.
+NRMSE and the relative MSE are the exceptions: they are computed on the linear images, because they measure
+radiance error, which clipping and the sRGB curve would hide in bright regions and exaggerate in dark ones.
+
+The relative MSE (:func:`rel_mse`) is the suite's primary error against a Monte Carlo reference: with the
+reference's per-pixel standard error it is **noise-corrected** (its expected value is the error of the test
+against the noise-free image, not against one noisy render), so methods can be ranked below the reference's own
+noise floor.
 """
 from __future__ import annotations
 
@@ -41,6 +46,9 @@ SSIM_MIN_SIZE_PX = 2 * int(3.5 * SSIM_SETTINGS["sigma"] + 0.5) + 1
 FLIP_VIEWING_CONDITION = {"vc": [0.7, 3840.0, 0.7]}  # [distance m, display width px, display width m]
 
 DEFAULT_NAMES = ("reference", "test")
+# Relative MSE denominator offset (Rousselle, Knaus and Zwicker 2011, "Adaptive sampling and reconstruction using
+# greedy error minimization", relMSE = mean((test - ref)^2 / (ref^2 + eps))): keeps black pixels from dominating.
+REL_MSE_EPS = 0.01
 
 
 def _srgb_encode():
@@ -190,8 +198,40 @@ def flip(ref, test, exposure: float = 1.0, names=DEFAULT_NAMES) -> float:
     return _flip_display(to_display(ref_rgb, exposure), to_display(test_rgb, exposure))
 
 
-def compare(ref, test, exposure: float = 1.0, names=DEFAULT_NAMES) -> dict[str, float]:
-    """All metrics at once: ``{"ssim", "dssim", "psnr_db", "nrmse", "flip"}`` (inputs checked once)."""
+def rel_mse(ref, test, ref_stderr=None, test_stderr=None, names=DEFAULT_NAMES) -> float:
+    """Relative MSE of the linear images, noise-corrected when standard errors are given::
+
+        rel_mse = mean( ((test - ref)^2 - ref_stderr^2 - test_stderr^2) / (ref^2 + REL_MSE_EPS) )
+
+    over pixels and channels. For a reference ``ref`` = truth + noise of variance ``ref_stderr^2`` (and a test
+    with its own independent noise), ``E[(test - ref)^2] = (test - truth)^2 + var(ref) + var(test)``: subtracting
+    the variances leaves an estimate of the test's error against the noise-free image. The estimate may be
+    slightly negative when the test is as good as the reference (noise); it is not clamped, so averages stay
+    unbiased. A non-finite standard error (unknown: a one-pass reference) counts as 0 (no correction).
+    """
+    ref_rgb, test_rgb = _check_pair(ref, test, names)
+    return _rel_mse_linear(ref_rgb, test_rgb, ref_stderr, test_stderr)
+
+
+def _variance(stderr, shape) -> np.ndarray | float:
+    if stderr is None:
+        return 0.0
+    s = np.asarray(stderr, dtype=np.float64)
+    if s.ndim == 2:
+        s = s[:, :, None]
+    s = np.broadcast_to(s, shape)
+    return np.where(np.isfinite(s), s * s, 0.0)
+
+
+def _rel_mse_linear(ref: np.ndarray, test: np.ndarray, ref_stderr=None, test_stderr=None) -> float:
+    sq = (test - ref) ** 2 - _variance(ref_stderr, ref.shape) - _variance(test_stderr, ref.shape)
+    return float(np.mean(sq / (ref * ref + REL_MSE_EPS)))
+
+
+def compare(ref, test, exposure: float = 1.0, names=DEFAULT_NAMES, ref_stderr=None,
+            test_stderr=None) -> dict[str, float]:
+    """All metrics at once: ``{"ssim", "dssim", "psnr_db", "nrmse", "flip", "rel_mse"}`` (inputs checked once);
+    ``rel_mse`` is noise-corrected with the standard errors when they are given (:func:`rel_mse`)."""
     ref_rgb, test_rgb = _check_pair(ref, test, names)
     ref_display = to_display(ref_rgb, exposure)
     test_display = to_display(test_rgb, exposure)
@@ -202,4 +242,5 @@ def compare(ref, test, exposure: float = 1.0, names=DEFAULT_NAMES) -> dict[str, 
         "psnr_db": _psnr_display(ref_display, test_display),
         "nrmse": _nrmse_linear(ref_rgb, test_rgb),
         "flip": _flip_display(ref_display, test_display),
+        "rel_mse": _rel_mse_linear(ref_rgb, test_rgb, ref_stderr, test_stderr),
     }

@@ -418,3 +418,78 @@ def direct_reference(scene, t_s: float = 0.0, resolution=None, spp: int = 1024, 
     """Direct-lighting ground truth (Mitsuba ``direct``), float32 ``(H, W, 3)``; see :func:`path_reference`."""
     ref = scene_reference(scene, t_s, resolution, spp, _integrator("direct", None), seed, variant, passes)
     return (ref.image, ref.stderr) if return_stderr else ref.image
+
+
+# --- reference sets: both light transports, each with its noise floor ----------------------------------
+
+#: The light transports a method may model (``Method.light_transport``) and the integrator of each reference.
+LIGHT_TRANSPORTS = ("global", "direct")
+#: Seed of the second, independent render of a reference whose difference to the first is the noise floor.
+FLOOR_SEED = 1
+FLOOR_FORMAT_VERSION = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceSet:
+    """One pose's reference for one light transport, and its noise floor.
+
+    ``floor`` holds every metric of :func:`suite.core.metrics.compare` between the reference (seed 0) and a
+    second render of the same pose with another seed (:data:`FLOOR_SEED`) and the same spp: what a metric says
+    when the test is as good as the reference can tell. ``rel_mse`` in it is noise-corrected with both renders'
+    standard errors, so it scatters around 0; its size is the resolution of the primary error. ``floor`` is
+    None when it was not measured.
+    """
+
+    transport: str
+    reference: Reference
+    floor: dict | None
+
+    @property
+    def image(self) -> np.ndarray:
+        return self.reference.image
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return self.reference.stderr
+
+
+def transport_integrator(transport: str, max_depth: int = 8) -> dict:
+    """The Mitsuba integrator of a light transport: ``global`` → ``path`` (``max_depth``), ``direct`` → ``direct``."""
+    if transport == "global":
+        return _integrator("path", max_depth)
+    if transport == "direct":
+        return _integrator("direct", None)
+    raise UserError(f"unknown light transport '{transport}' (choose from {', '.join(LIGHT_TRANSPORTS)})")
+
+
+def noise_floor(first: Reference, second: Reference, exposure: float = 1.0) -> dict:
+    """Every metric between two independent renders of one pose (cached beside them as
+    ``<first key>.floor-<second key>.json``; the exposure is part of the file's content and checked)."""
+    from suite.core.metrics import compare
+
+    path = cache_dir() / f"{first.key}.floor-{second.key[:16]}.json"
+    if path.is_file():
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("format") == FLOOR_FORMAT_VERSION and doc.get("exposure") == float(exposure):
+                return dict(doc["metrics"])
+        except (OSError, json.JSONDecodeError, KeyError):
+            pass
+    metrics = compare(first.image, second.image, exposure=exposure, ref_stderr=first.stderr,
+                      test_stderr=second.stderr)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_json_atomic(path, {"format": FLOOR_FORMAT_VERSION, "exposure": float(exposure), "first": first.key,
+                              "second": second.key, "metrics": {k: float(v) for k, v in metrics.items()}})
+    return metrics
+
+
+def reference_set(scene, t_s: float, resolution, spp: int, transport: str = "global", max_depth: int = 8,
+                  exposure: float = 1.0, floor: bool = True, variant: str = "auto") -> ReferenceSet:
+    """The reference of ``scene`` at ``t_s`` for one light transport, rendered (or read from the cache) at
+    seed 0, with its noise floor against a second render at :data:`FLOOR_SEED` when ``floor``."""
+    integrator = transport_integrator(transport, max_depth)
+    first = scene_reference(scene, t_s, resolution, spp, integrator, seed=0, variant=variant)
+    if not floor:
+        return ReferenceSet(transport, first, None)
+    second = scene_reference(scene, t_s, resolution, spp, integrator, seed=FLOOR_SEED, variant=variant)
+    return ReferenceSet(transport, first, noise_floor(first, second, exposure))

@@ -210,3 +210,151 @@ def from_video(rgb8: np.ndarray, exposure: float) -> np.ndarray:
 
     linear = colour.cctf_decoding(rgb8.astype(np.float64) / 255.0, function="sRGB")
     return (np.asarray(linear) / float(exposure)).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------- streaming
+
+def nal_types(codec: str, bitstream: bytes) -> set[int]:
+    """The NAL unit types in an Annex-B bitstream (H.264: 5 bits after the start code; HEVC: 6 bits)."""
+    types = set()
+    for nal in nal_units(bitstream):
+        i = 3 if nal[2] == 1 else 4
+        if len(nal) > i:
+            types.add(nal[i] & 0x1F if codec == "h264" else (nal[i] >> 1) & 0x3F)
+    return types
+
+
+def has_idr(codec: str, bitstream: bytes) -> bool:
+    # H.264 IDR slice: NAL type 5 (ITU-T H.264 Table 7-1); HEVC IDR_W_RADL / IDR_N_LP: 19, 20 (H.265 Table 7-1).
+    idr = {5} if codec == "h264" else {19, 20}
+    return bool(nal_types(codec, bitstream) & idr)
+
+
+# The parameters of a video stream, with their defaults and one line each (a method's config.toml repeats the
+# defaults it uses in [defaults] and these lines in [doc]).
+STREAM_DEFAULTS = {"codec": "h264", "bitrate_mbps": 20.0, "crf": 23.0, "keyint": 60, "intra_refresh": False,
+                   "preset": "veryfast", "mtu_bytes": 1200, "exposure": 1.0}
+
+# Declared outputs (Method.outputs) of a frame sent as video by :func:`stream_frame`.
+STREAM_OUTPUTS = {"wire_bytes": "bytes of the encoded frame on the wire (with datagram headers under UDP)",
+                  "video_bytes": "bytes of the encoded bitstream of the frame",
+                  "keyframe": "the encoder made an IDR frame",
+                  "nal_lost": "NAL units of the frame that did not arrive whole (-1: nothing of the frame arrived)",
+                  "status": "ok | damaged (decoded, but it or a reference lost data) | frozen (previous picture "
+                            "shown)"}
+
+
+@dataclass
+class StreamSettings:
+    """How a stream is encoded and sent (:data:`STREAM_DEFAULTS`)."""
+
+    codec: str = "h264"
+    bitrate_mbps: float = 20.0
+    crf: float = 23.0
+    keyint: int = 60
+    intra_refresh: bool = False
+    preset: str = "veryfast"
+    mtu_bytes: int = 1200
+    exposure: float = 1.0
+
+    @classmethod
+    def from_params(cls, p: dict) -> "StreamSettings":
+        """The settings from a method's parameters; a bad value is a one-line UserError."""
+        s = cls(**{k: type(v)(p.get(k, v)) for k, v in STREAM_DEFAULTS.items()})
+        check_codec(s.codec)
+        if s.bitrate_mbps < 0 or not 0 <= s.crf <= 51:
+            raise UserError(f"bitrate_mbps must be >= 0 and crf in 0..51, got {s.bitrate_mbps}, {s.crf}")
+        if s.keyint < 1:
+            raise UserError(f"keyint must be >= 1, got {s.keyint}")
+        if s.intra_refresh and s.codec != "h264":
+            raise UserError("intra_refresh is an x264 option; use codec = \"h264\"")
+        if s.exposure <= 0:
+            raise UserError(f"exposure must be > 0, got {s.exposure}")
+        if s.mtu_bytes - HEADER_BYTES < 16:
+            raise UserError(f"mtu_bytes {s.mtu_bytes} leaves no room for payload (header {HEADER_BYTES} bytes)")
+        return s
+
+
+@dataclass
+class Sent:
+    """What the server's side of :class:`Stream` put on the wire for one frame."""
+
+    payload: bytes               # the message: the bitstream (TCP) or the datagrams (UDP)
+    encoded: Encoded
+    spans: list | None           # datagram boundaries in ``payload`` (UDP), the transport's framing
+
+
+class Stream:
+    """One client's video stream: the server's encoder and the client's decoder with what the client knows about
+    damage. A sync method keeps one per client (its server stages encode, its client stages decode).
+
+    Under UDP a lost datagram damages the slices it carried; the decoder conceals them from its reference picture,
+    and the damage propagates through predicted frames until the next IDR frame (``keyint``) or, with
+    ``intra_refresh``, until a full refresh cycle of ``keyint`` frames has arrived intact. A frame from which the
+    decoder produces no picture leaves the previous one on screen (frozen)."""
+
+    def __init__(self, settings: StreamSettings, width: int, height: int, fps: float):
+        s = self.s = settings
+        self.w, self.h = int(width), int(height)
+        self.encoder = Encoder(s.codec, self.w, self.h, fps, s.bitrate_mbps, s.crf, s.keyint, s.intra_refresh,
+                               s.preset, s.mtu_bytes - HEADER_BYTES)
+        self.decoder = Decoder(s.codec, self.w, self.h)
+        from_video(to_video(np.zeros((1, 1, 3), np.float32), 1.0), 1.0)  # loads the colour transforms untimed
+        self._last: np.ndarray | None = None
+        self._damaged = False
+        self._clean_run = 0
+
+    def send_side(self, image: np.ndarray, frame_index: int, udp: bool) -> Sent:
+        """Server: display transform, encode, and (UDP) packetise one frame of linear radiance."""
+        encoded = self.encoder.encode(to_video(image, self.s.exposure))
+        if udp:
+            packets = packetise(frame_index, encoded.data, self.s.mtu_bytes)
+            return Sent(packets.message, encoded, packets.spans)
+        return Sent(encoded.data, encoded, None)
+
+    def receive_side(self, frame_index: int, data: bytes | None, complete: bool, lost_ranges, spans):
+        """Client: (linear radiance shown, bitstream bytes decoded, facts for :data:`STREAM_OUTPUTS` less the
+        sender's) from the delivered bytes of one frame's message."""
+        if spans is not None:
+            bitstream, _, nal_lost = reassemble(frame_index, data or b"", spans, lost_ranges)
+        else:
+            # TCP delivers the whole frame or, past the timeout, nothing the client waited for
+            bitstream, nal_lost = (data, 0) if complete else (b"", -1)
+        rgb = self.decoder.decode(bitstream)
+        if nal_lost != 0:
+            self._damaged, self._clean_run = True, 0
+        elif has_idr(self.s.codec, bitstream):
+            self._damaged, self._clean_run = False, 0
+        else:
+            self._clean_run += 1
+            if self.s.intra_refresh and self._clean_run >= self.s.keyint:
+                self._damaged = False  # a whole refresh wave arrived intact
+        if rgb is None:
+            status = "frozen"
+            rgb = self._last if self._last is not None else np.zeros((self.h, self.w, 3), np.uint8)
+        else:
+            status = "damaged" if self._damaged else "ok"
+            self._last = rgb
+        return from_video(rgb, self.s.exposure), len(bitstream), {"nal_lost": int(nal_lost), "status": status}
+
+
+def stream_frame(ctx, stream: Stream, image: np.ndarray, after=None, name: str = "video") -> np.ndarray:
+    """Sends one server-rendered frame to the client as video, in the harness's stages (the context ``ctx`` of a
+    sync frame; duck-typed, see docs/method-contract.md): ``encode`` on the server (after ``after``), the message
+    ``name`` down through the network, ``decode`` on the client when it has arrived. Records
+    :data:`STREAM_OUTPUTS` and returns what the client shows (linear radiance)."""
+    w, h = stream.w, stream.h
+    with ctx.stage("encode", place="server", after=after) as st:
+        sent = stream.send_side(image, ctx.index, ctx.protocol == "udp")
+        st.bytes = len(sent.payload)
+        st.count(codec_bytes=w * h * 3 // 2 + len(sent.encoded.data))
+    msg = ctx.send(name, sent.payload if sent.payload else b"\0", direction="down")
+    with ctx.stage("decode", place="client", after=[name]) as st:
+        out, decoded_bytes, facts = stream.receive_side(ctx.index, msg.data, msg.complete, msg.lost_ranges,
+                                                        sent.spans)
+        st.count(codec_bytes=w * h * 3 // 2 + decoded_bytes)
+        st.bytes = decoded_bytes
+        st.pixels = w * h
+    ctx.record(wire_bytes=len(sent.payload), video_bytes=len(sent.encoded.data),
+               keyframe=bool(sent.encoded.keyframe), **facts)
+    return out

@@ -459,24 +459,47 @@ def format_core(rows) -> str:
 def cmd_reproduce(args) -> int:
     from suite.harness import executor, presets
 
-    configs, problems = presets.configs(args.preset, methods=args.methods)
+    if args.matrix and args.preset not in presets.registry.SHARED_PRESETS:
+        raise UserError(f"--matrix applies to the shared presets ({', '.join(presets.registry.SHARED_PRESETS)}), "
+                        f"not '{args.preset}'")
+    configs, problems, record = presets.expand(args.preset, methods=args.methods, matrix_file=args.matrix)
     results_dir = _check_writable_dir(args.out)
     report_dir = _check_writable_dir(args.report, "--report")
     for problem in problems:
         print(f"{PROG}: warning: {problem}", file=sys.stderr)
+    for scene in record.get("skipped_scenes", []):
+        print(f"{PROG}: note: scene '{scene}' is not available on this machine; its {args.preset} cells are "
+              "skipped (recorded in the report)", file=sys.stderr)
     # Which scenes this machine has (the report marks those it lacks) is recorded beside the runs.
     from suite import fileio
 
     fileio.write_text(Path(results_dir) / "scenes.json",
                       json.dumps({"scenes": runner_scenes()}, indent=2, sort_keys=True) + "\n")
+    import time
+
+    start_s = time.perf_counter()
     with executor.make_executor(args.executor, args.scheduler, args.workers) as ex:
         outcomes = executor.sweep(configs, results_dir, ex, desc=f"preset {args.preset}", force=args.force)
-    from reports.build import build
+    # What ran, how long the sweep took and where (the README's budgets come from these records).
+    record.update({"problems": problems, "executor": ex.name, "scheduler": args.scheduler,
+                   "wall_s": time.perf_counter() - start_s, "host_cpus": os.cpu_count(),
+                   "done": sum(1 for o in outcomes if not o["error"] and not o["skipped"]),
+                   "already_complete": sum(1 for o in outcomes if o["skipped"]),
+                   "run_dirs": [Path(o["run_dir"]).name for o in outcomes if o["run_dir"]],
+                   "failed": [{"method": o["config"]["method"], "scene": o["config"]["scene"],
+                               "net": o["config"]["net"], "error": o["error"]} for o in outcomes if o["error"]]})
+    (Path(results_dir) / "presets").mkdir(exist_ok=True)
+    fileio.write_text(Path(results_dir) / "presets" / f"{args.preset}.json",
+                      json.dumps(record, indent=2, sort_keys=True, default=str) + "\n")
+    index = None
+    if not args.no_report:
+        from reports.build import build
 
-    index = build(results_dir, report_dir)
+        index = build(results_dir, report_dir)
     failed = [o for o in outcomes if o["error"]]
     if args.json:
-        _print_json({"preset": args.preset, "results": str(results_dir), "report": str(index), "problems": problems,
+        _print_json({"preset": args.preset, "results": str(results_dir), "report": str(index) if index else None,
+                     "problems": problems,
                      "runs": [{k: o[k] for k in ("run_dir", "skipped", "error")} | {"method": o["config"]["method"]}
                               for o in outcomes]})
     else:
@@ -485,7 +508,7 @@ def cmd_reproduce(args) -> int:
         print(f"preset {args.preset}: {done} runs done, {skipped} already complete, {len(failed)} failed")
         for o in failed:
             print(f"  FAILED {o['config']['method']} {o['config']['scene']} {o['config']['net']}: {o['error']}")
-        print(f"report: {index}")
+        print(f"report: {index}" if index else "report: not built (--no-report)")
     return 1 if failed or problems else 0
 
 
@@ -576,14 +599,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("reproduce", help="run a preset matrix, then build the report")
-    s.add_argument("--preset", default="quick", choices=("smoke", "quick", "full"))
+    s.add_argument("--preset", default="quick", choices=registry_presets(),
+                   help="a method preset (smoke, quick, full) or the shared cross-method matrix (compare, "
+                        "compare-full: suite/harness/compare.toml)")
     s.add_argument("--methods", default=None, help="comma-separated subset of methods")
+    s.add_argument("--matrix", default=None, help="the shared matrix file of compare / compare-full (default "
+                   "suite/harness/compare.toml)")
     s.add_argument("--out", default="results", help="results root")
     s.add_argument("--report", default="report", help="report directory")
     s.add_argument("--executor", default="serial", choices=EXECUTORS)
     s.add_argument("--scheduler", default=None, help="Dask scheduler address tcp://host:port (implies dask)")
     s.add_argument("--workers", default=2, type=_int_arg("--workers"))
     s.add_argument("--force", action="store_true", help="recompute runs that are already complete")
+    s.add_argument("--no-report", action="store_true", help="do not build the report (a later `splitbench "
+                   "report` builds it from everything stored)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_reproduce)
 
@@ -600,6 +629,12 @@ def build_parser() -> argparse.ArgumentParser:
     if netsim_cli is not None and hasattr(netsim_cli, "register"):
         netsim_cli.register(sub)
     return p
+
+
+def registry_presets() -> tuple:
+    from suite.harness.registry import PRESETS
+
+    return PRESETS
 
 
 def _int_arg(name: str):

@@ -30,6 +30,10 @@ class Method:
     name: str = ""
     mode: str = "sync"          # "sync" | "async"
     uses_network = True         # False: the zero-latency run would be identical, so the harness skips it
+    # The light transport the method models: "direct" (emitters seen directly plus one bounce of direct lighting,
+    # Mitsuba's `direct` integrator) or "global" (multi-bounce, Mitsuba's `path`). Runs are scored against both
+    # references; the report takes the one named here as the method's own ground truth.
+    light_transport: str = "direct"
     # Declared per-frame outputs (name -> description): ``ctx.record(name=value)`` in a client frame stores
     # them as ``info_<name>`` columns of frames.parquet; ``update_outputs`` the same for server updates
     # (updates.parquet). Recording an undeclared name is an error.

@@ -18,7 +18,11 @@ from suite.errors import UserError
 from suite.harness.method import Method
 
 METHODS_DIR = Path(__file__).resolve().parents[2] / "methods"
-PRESETS = ("smoke", "quick", "full")
+PRESETS = ("smoke", "quick", "full", "compare", "compare-full")
+# Presets whose matrix is the shared one of suite/harness/compare.toml (each method adds only its
+# [presets.compare] variants / set / backend), not each method's own [presets.<name>] grid.
+SHARED_PRESETS = ("compare", "compare-full")
+LIGHT_TRANSPORTS = ("direct", "global")
 RESERVED_PARAMS = ("client_fps", "update_fps", "max_in_flight")
 
 
@@ -84,11 +88,19 @@ class MethodSpec:
         cls = classes[0]
         if cls.mode not in ("sync", "async"):
             raise UserError(f"method '{self.name}': mode must be 'sync' or 'async', not {cls.mode!r}")
+        if getattr(cls, "light_transport", "direct") not in LIGHT_TRANSPORTS:
+            raise UserError(f"method '{self.name}': light_transport must be one of {', '.join(LIGHT_TRANSPORTS)}, "
+                            f"not {cls.light_transport!r}")
         return cls
 
     def preset_points(self, preset: str) -> list[dict]:
         """The runs of one preset: product(scenes, resolutions, nets, protocols, variants, clients, server_nets,
         *grid values)."""
+        if preset in SHARED_PRESETS:
+            # The shared matrix (suite/harness/compare.toml) with this method's variants: its table is no grid.
+            from suite.harness import presets
+
+            return presets.shared_points(self, preset, presets.shared_matrix(preset), presets.scene_available)
         table = self.config.get("presets", {}).get(preset)
         if table is None:
             return []

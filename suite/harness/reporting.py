@@ -84,10 +84,12 @@ def label_axes(ax, xlabel: str, ylabel: str, xscale: str | None = None, yscale: 
             ax.legend(fontsize=fontsize)
 
 
-def save_figure(fig, path) -> str:
-    """Lays out and writes ``fig`` to ``path`` (its format from the extension); returns the file name."""
+def save_figure(fig, path, tight: bool = True) -> str:
+    """Lays out (``tight``: matplotlib's tight layout; False keeps the figure's own, for grids of many axes where
+    it is slow) and writes ``fig`` to ``path`` (its format from the extension); returns the file name."""
     path = Path(path)
-    fig.tight_layout()
+    if tight:
+        fig.tight_layout()
     with fileio.atomic_target(path, suffix=f".tmp{path.suffix}") as tmp_name:
         fig.savefig(tmp_name)
     return path.name
@@ -134,11 +136,11 @@ class SectionFiles:
         fileio.write_text(self.folder / name, json.dumps(obj, indent=1, sort_keys=True) + "\n")
         return f" <a href='{esc(self.name)}/{esc(name)}'>{esc(name)}</a>"
 
-    def plot(self, fig, name: str) -> str:
-        """Writes ``fig`` as ``name``; returns an ``<img>`` or ""."""
+    def plot(self, fig, name: str, tight: bool = True) -> str:
+        """Writes ``fig`` as ``name`` (``tight``: see :func:`save_figure`); returns an ``<img>`` or ""."""
         if self.folder is None:
             return ""
-        save_figure(fig, self.folder / name)
+        save_figure(fig, self.folder / name, tight)
         return f"<img src='{esc(self.name)}/{esc(name)}'>"
 
     def copy(self, src, name: str) -> str | None:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from suite import fileio
+from suite.core import scene as scene_mod
 from suite.errors import UserError
 from suite.harness import registry, results
 from suite.harness.clients import client_camera
@@ -28,20 +29,26 @@ from suite.harness.timeline import WORK_KINDS, Timeline, run_async, run_sync
 from suite.progress import progress
 
 DEFAULT_RESULTS_DIR = "results"
-METRICS = ("ssim", "dssim", "psnr_db", "nrmse", "flip")
+METRICS = ("ssim", "dssim", "psnr_db", "nrmse", "flip", "rel_mse")
 # Metrics of an image against itself.
-IDENTICAL = {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0}
+IDENTICAL = {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0, "rel_mse": 0.0}
+# Column prefixes of the quality metrics (docs/results.md): "" against the full-GI (path) reference, "direct_"
+# against the direct-lighting reference, "floor_" / "direct_floor_" the noise floor of those references (the
+# metric between two independent renders of the pose), "zl_" against the method's own zero-latency run.
+QUALITY_PREFIXES = ("", "direct_", "floor_", "direct_floor_", "zl_")
 RUN_DEFAULTS = {
     "scene": "cornell", "backend": "embree", "resolution": [160, 90], "frames": 3, "net": "ideal",
     "protocol": "tcp", "variant": "default", "seed": 0, "clock": "measured", "work_ns_per_ray": 50.0,
     "work_ns_per_pixel": 20.0, "quality_every": 0, "reference_spp": 32, "reference_max_depth": 8,
     "exposure": 1.0, "message_timeout_ms": 100.0, "clients": 1, "server_net": None, "quality_clients": 1,
     "work_ns_per_tap": 2.0, "work_ns_per_point": 50.0, "work_ns_per_codec_byte": 5.0,
+    "reference_direct": True, "reference_floor": True,
 }
 # Settings that cannot change what a method computes offline: prepare() output is shared across them.
 NOT_PREPARE_KEYS = ("net", "protocol", "clients", "server_net", "message_timeout_ms", "frames", "quality_every",
-                    "quality_clients", "reference_spp", "reference_max_depth", "exposure", "clock", "work_ns_per_ray",
-                    "work_ns_per_pixel", "work_ns_per_tap", "work_ns_per_point", "work_ns_per_codec_byte")
+                    "quality_clients", "reference_spp", "reference_max_depth", "reference_direct", "reference_floor",
+                    "exposure", "clock", "work_ns_per_ray", "work_ns_per_pixel", "work_ns_per_tap", "work_ns_per_point",
+                    "work_ns_per_codec_byte")
 MAX_CLIENTS = 256
 # With quality_every = 0, at most this many frames per run are compared against the references.
 AUTO_QUALITY_FRAMES = 16
@@ -105,10 +112,19 @@ def reference_image(scene, t_s: float, resolution, spp: int, max_depth: int) -> 
     return path_reference(scene, t_s, resolution=tuple(resolution), spp=spp, max_depth=max_depth)
 
 
-def compare_images(ref, test, exposure: float) -> dict:
+def reference_set(scene, t_s: float, resolution, spp: int, transport: str, max_depth: int, exposure: float,
+                  floor: bool):
+    """One pose's reference for ``transport`` (``global`` | ``direct``) with ``.image``, ``.stderr`` and its noise
+    floor ``.floor`` (a metrics dict, or None when ``floor`` is False)."""
+    from suite.core.reference import reference_set as _reference_set
+
+    return _reference_set(scene, t_s, tuple(resolution), spp, transport, max_depth, exposure=exposure, floor=floor)
+
+
+def compare_images(ref, test, exposure: float, ref_stderr=None) -> dict:
     from suite.core.metrics import compare
 
-    return compare(ref, test, exposure=exposure)
+    return compare(ref, test, exposure=exposure, ref_stderr=ref_stderr)
 
 
 def write_exr(path, img) -> None:
@@ -140,10 +156,14 @@ def parse_resolution(value) -> list[int]:
 
 
 def _scene_identity(scene: str) -> str:
-    """A scene file is identified by its content too, so an edited file makes a new run."""
-    if os.path.isfile(scene):
-        return hashlib.sha256(Path(scene).read_bytes()).hexdigest()[:16]
-    return ""
+    """A scene is identified by the content of the files it loads from too (a scene file, an OpenArena map and
+    its archives, an OBJ and its sidecar), so changed scene data makes a new run. Data that is missing gives ''
+    here; the run itself then stops with the loader's error."""
+    try:
+        digest = scene_mod.source_digest(scene)
+    except UserError:
+        return ""
+    return digest[:16]
 
 
 def make_config(method: str, *, scene=None, backend=None, resolution=None, frames=None, net=None, protocol=None,
@@ -460,8 +480,7 @@ def saved_frames(candidates: list[int]) -> list[int]:
 
 SUMMARY_COLUMNS = ("frame_ms", "latency_ms", "frame_interval_ms", "staleness_ms", "client_ms", "server_ms",
                    "network_ms", "bytes_down", "bytes_up", "rays", "pixels", "work_taps", "work_points",
-                   "work_codec_bytes", *METRICS,
-                   *(f"zl_{m}" for m in METRICS))
+                   "work_codec_bytes", *(f"{p}{m}" for p in QUALITY_PREFIXES for m in METRICS))
 
 
 def run_location(cfg: dict, results_root) -> tuple[Path, str, dict]:
@@ -529,28 +548,40 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
                     keep_clients=set(q_clients) | {0})
     # The zero-latency run is the reference for the error that distribution adds; a method without messages
     # or a run on the ideal network would reproduce its own images, so it is skipped then.
-    needs_zl = cls.uses_network and (cfg["net"] != "ideal" or cfg.get("server_net"))
+    # A method may decide per parameters (a placement, a renderer): an instance attribute overrides the class's.
+    facts = cls(cfg["params"])
+    needs_zl = facts.uses_network and (cfg["net"] != "ideal" or cfg.get("server_net"))
     zl = zero_latency_images(cls, scene, tracer, cfg, q_frames, q_clients, prepared, Path(results_root), env) \
         if needs_zl and q_frames and q_clients else None
 
     frames = pd.DataFrame(main.rows)
-    for m in METRICS:
-        frames[m] = np.nan
-        frames[f"zl_{m}"] = np.nan
+    for prefix in QUALITY_PREFIXES:
+        for m in METRICS:
+            frames[f"{prefix}{m}"] = np.nan
     row_of = {(int(c), int(i)): r for r, (c, i) in enumerate(zip(frames["client"], frames["frame"]))}
     references = {}
     spp = int(cfg["reference_spp"])
+    transports = ("global", "direct") if cfg.get("reference_direct", True) else ("global",)
     for c, i in progress([(c, i) for c in q_clients for i in q_frames], desc="quality", unit="frame"):
         r = row_of[(c, i)]
         test = main.images[(c, i)]
-        if spp > 0:
+        # The direct-lighting reference, like the noise floors, on at most SAVED_FRAMES poses (first, middle, last).
+        for transport in (t for t in transports if t == "global" or i in keep_frames) if spp > 0 else ():
             # The reference sees the scene from this client's pose.
-            ref = reference_image(scene_view(scene, client_camera(scene.camera, c, n_clients)),
-                                  float(frames.at[r, "t_s"]), cfg["resolution"], spp, int(cfg["reference_max_depth"]))
-            references[(c, i)] = ref
-            for m, v in compare_images(ref, test, cfg["exposure"]).items():
+            ref = reference_set(scene_view(scene, client_camera(scene.camera, c, n_clients)),
+                                float(frames.at[r, "t_s"]), cfg["resolution"], spp, transport,
+                                int(cfg["reference_max_depth"]), cfg["exposure"],
+                                # the noise floor on at most SAVED_FRAMES poses (first, middle, last): it costs a
+                                # second render of each pose
+                                bool(cfg.get("reference_floor", True)) and i in keep_frames)
+            prefix = "" if transport == "global" else f"{transport}_"
+            references[(transport, c, i)] = ref.image
+            for m, v in compare_images(ref.image, test, cfg["exposure"], ref_stderr=ref.stderr).items():
                 if m in METRICS:
-                    frames.at[r, m] = float(v)
+                    frames.at[r, f"{prefix}{m}"] = float(v)
+            for m, v in (ref.floor or {}).items():
+                if m in METRICS:
+                    frames.at[r, f"{prefix}floor_{m}"] = float(v)
         if zl is None:
             # This run is its own zero-latency run (ideal network, or a method without messages).
             for m, v in IDENTICAL.items():
@@ -567,7 +598,8 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     bytes_up = sum(e.size_bytes for e in msgs if e.place == "up")
     summary = {
         "schema_version": results.SCHEMA_VERSION, "run_key": key, "method": cfg["method"],
-        "variant": cfg["variant"], "mode": cls.mode, "scene": cfg["scene"], "net": cfg["net"],
+        "variant": cfg["variant"], "mode": cls.mode, "light_transport": getattr(facts, "light_transport", "direct"),
+        "scene": cfg["scene"], "net": cfg["net"],
         "server_net": cfg.get("server_net"), "clients": n_clients,
         "protocol": cfg["protocol"], "resolution": cfg["resolution"], "frames": cfg["frames"],
         "prepare_ms": prepare_ms, "prepare_reused": prepare_reused, "prepare_key": prepare_key,
@@ -603,8 +635,13 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
                     continue
                 write_exr(w.path(f"images/{tag}frame_{i:04d}.exr"), main.images[(c, i)])
                 write_png(w.path(f"images/{tag}frame_{i:04d}.png"), main.images[(c, i)], cfg["exposure"])
-                if (c, i) in references:
-                    write_png(w.path(f"images/{tag}reference_{i:04d}.png"), references[(c, i)], cfg["exposure"])
+                # The report's image columns: the references of both light transports and the zero-latency run.
+                for transport, name in (("global", "reference"), ("direct", "direct_reference")):
+                    if (transport, c, i) in references:
+                        write_png(w.path(f"images/{tag}{name}_{i:04d}.png"), references[(transport, c, i)],
+                                  cfg["exposure"])
+                if zl is not None and (c, i) in zl:
+                    write_png(w.path(f"images/{tag}zero_latency_{i:04d}.png"), zl[(c, i)], cfg["exposure"])
         final = w.commit(summary)
     return {"run_dir": str(final), "skipped": False, "summary": summary}
 

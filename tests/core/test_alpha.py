@@ -62,8 +62,9 @@ def test02_shadow_rays_pass_transparent_texels(backend):
     d = -d
     occ = tracer.occluded(o, d, 0.0, 3.5)
     assert occ.tolist() == [False, True, False]
-    # 3 shadow rays; the 2 that the any-hit query found blocked are resolved with a closest-hit walk (1 ray each,
-    # plus 1 re-trace past the transparent hit).
+    # 3 shadow rays; the opaque faces (the wall behind them) block none of the 2 that the any-hit query found
+    # blocked, so those walk the alpha-tested faces: 1 closest-hit query each, plus 1 re-trace past the transparent
+    # hit.
     assert tracer.counters == {"rays_intersect": 3, "rays_occluded": 3}
     # A shadow ray that ends before the screen is never blocked by it, transparent or not.
     assert not tracer.occluded(o[1:2], d[1:2], 0.0, 0.5)[0]
@@ -128,3 +129,44 @@ def test06_gbuffer_carries_material_ids_and_kinds():
     # The existing diffuse scenes report only diffuse surfaces.
     cornell = load("cornell")
     assert set(np.unique(render_gbuffer(cornell, make("embree", cornell), 0.0, (16, 16)).kind)) <= {-1, 0}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test07_opaque_and_alpha_groups_give_the_answer_of_the_whole_scene_walk(backend):
+    """occluded in groups (whole-scene any-hit, opaque faces, then the walk of the alpha-tested faces only) blocks the
+    same shadow rays as the walk of every blocked ray through the whole scene, on the host and on the device."""
+    from suite.core.scene import load
+    from suite.core.trace.bench import shadow_rays
+
+    scene = load("gallery")
+    o, d, tmax = shadow_rays(scene, (64, 36))
+    grouped, whole = make(backend, scene), make(backend, scene)
+    whole._groups = False  # no sub-scenes: the whole-scene walk
+    blocked = grouped.occluded(o, d, 0.0, tmax)
+    assert grouped._groups and 0 < blocked.sum() < len(blocked)
+    assert np.array_equal(blocked, whole.occluded(o, d, 0.0, tmax))
+    assert grouped.counters["rays_intersect"] < whole.counters["rays_intersect"]  # fewer rays walk
+    dev = getattr(grouped, "device", None)
+    if dev is not None:
+        args = (dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f), 0.0, dev.to_device(tmax, dev.Float))
+        assert np.array_equal(np.array(dev.occluded(*args), bool), blocked)
+        assert np.array_equal(np.array(whole.device.occluded(*args), bool), blocked)
+
+
+def test08_the_compiled_alpha_test_gives_the_bits_of_the_numpy_reference():
+    """AlphaTest.transparent (one numba pass per alpha-tested material) against the numpy opacity lookup and
+    comparison: random hits on alpha-tested and other faces, misses, barycentrics outside the triangle (the texture
+    repeats), float32 and float64 barycentrics, two thresholds."""
+    from suite.core.trace.alpha import AlphaTest
+
+    rng = np.random.default_rng(3)
+    for threshold in (0.5, 0.3):
+        scene = screen_scene(layers=2, opacity=rng.random((8, 8)).astype(np.float32), threshold=threshold)
+        test = AlphaTest(scene)
+        n = 4000
+        prim = rng.integers(-1, scene.num_faces, n).astype(np.int32)
+        u = (rng.random(n) * 3.0 - 1.0).astype(np.float32)
+        v = (rng.random(n) * 3.0 - 1.0).astype(np.float32)
+        for uu, vv in ((u, v), (u.astype(np.float64) / 3.0, v)):
+            out = test.transparent(prim, uu, vv)
+            assert np.array_equal(out, test.transparent_reference(prim, uu, vv)) and 0 < out.sum() < n

@@ -45,7 +45,8 @@ def test03_invalid_exposure_is_a_user_error(exposure):
 
 def test04_identical_images_score_perfectly():
     img = random_image(1)
-    assert compare(img, img) == {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0}
+    assert compare(img, img) == {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0,
+                                 "rel_mse": 0.0}
 
 
 @pytest.mark.parametrize("offset", [0.01, 0.05, 0.2])
@@ -97,7 +98,8 @@ def test09_larger_error_scores_worse_on_every_metric():
 
 def test10_equal_constant_images_score_perfectly():
     grey = np.full((16, 16, 3), 0.3)
-    assert compare(grey, grey) == {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0}
+    assert compare(grey, grey) == {"ssim": 1.0, "dssim": 0.0, "psnr_db": math.inf, "nrmse": 0.0, "flip": 0.0,
+                                   "rel_mse": 0.0}
 
 
 def test11_different_constant_images_give_finite_imperfect_scores():
@@ -212,3 +214,32 @@ def test22_flip_uses_the_stated_viewing_condition(monkeypatch):
     assert seen["dynamic_range"] == "LDR" and seen["inputsRGB"] is True
     assert seen["parameters"] == metrics.FLIP_VIEWING_CONDITION
     assert seen["contiguous"] and seen["dtype"] == np.float32
+
+
+# --- noise-corrected relative MSE -----------------------------------------------------------------------
+
+def test23_rel_mse_without_noise_estimates_is_mean_squared_error_over_squared_reference_plus_eps():
+    ref, test = random_image(1), random_image(2)
+    expected = np.mean((test.astype(np.float64) - ref) ** 2 / (ref.astype(np.float64) ** 2 + metrics.REL_MSE_EPS))
+    assert metrics.rel_mse(ref, test) == pytest.approx(expected, rel=1e-9)
+    assert compare(ref, test)["rel_mse"] == pytest.approx(expected, rel=1e-9)
+    assert metrics.rel_mse(ref, ref) == 0.0
+
+
+def test24_noise_correction_removes_the_references_known_variance():
+    rng = np.random.default_rng(5)
+    truth = random_image(3, shape=(64, 64, 3)) + 0.2
+    sigma = 0.02
+    noisy_ref = truth + rng.normal(0.0, sigma, truth.shape)
+    stderr = np.full(truth.shape, sigma)
+    raw = metrics.rel_mse(noisy_ref, truth)
+    corrected = metrics.rel_mse(noisy_ref, truth, ref_stderr=stderr)
+    # a perfect test image scores the reference's noise without correction, about 0 with it
+    assert raw > 1e-4 and abs(corrected) < 0.1 * raw
+    # a biased image keeps its error: within 10 % of its error against the noise-free truth (the noisy
+    # reference in the denominator leaves a bias of second order in its relative noise)
+    biased = 1.2 * truth
+    assert metrics.rel_mse(noisy_ref, biased, ref_stderr=stderr) == pytest.approx(metrics.rel_mse(truth, biased),
+                                                                                   rel=0.1)
+    # an unknown (infinite) standard error means no correction
+    assert metrics.rel_mse(noisy_ref, truth, ref_stderr=np.full(truth.shape, np.inf)) == raw

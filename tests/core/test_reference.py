@@ -248,3 +248,41 @@ def test19_direct_reference_is_stored_apart_from_the_path_reference():
     assert np.isfinite(direct).all() and (direct >= 0).all()
     assert len(cache_files(reference.cache_dir())) == 6
     assert not np.array_equal(direct, path)
+
+
+# --- reference sets: both transports, noise floor ----------------------------------------------------
+
+def test20_noise_floor_is_measured_between_two_seeds_and_stored_with_the_reference(monkeypatch):
+    scene = tiny_scene()
+    first = reference.reference_set(scene, 0.0, (16, 12), 64, "global", variant=VARIANT)
+    second = reference.scene_reference(scene, 0.0, (16, 12), 64, reference.transport_integrator("global"),
+                                       seed=reference.FLOOR_SEED, variant=VARIANT)
+    assert first.reference.key != second.key  # two independent renders
+    # the floor is every metric between the two renders, and it is stored in the cache beside them
+    floor_files = [f for f in cache_files(reference.cache_dir()) if ".floor-" in f]
+    assert len(floor_files) == 1 and floor_files[0].startswith(first.reference.key)
+    assert 0.0 < first.floor["dssim"] < 0.5 and first.floor["psnr_db"] > 20.0
+    monkeypatch.setattr(reference, "render_with_stderr", None)  # served from the cache, floor included
+    again = reference.reference_set(scene, 0.0, (16, 12), 64, "global", variant=VARIANT)
+    assert again.floor == pytest.approx(first.floor)
+
+
+def test21_noise_corrected_error_is_near_zero_for_a_second_reference_and_positive_for_a_biased_image():
+    from suite.core.metrics import rel_mse
+
+    scene = tiny_scene()
+    ref = reference.scene_reference(scene, 0.0, (16, 12), 256, reference.transport_integrator("direct"),
+                                    variant=VARIANT)
+    other = reference.scene_reference(scene, 0.0, (16, 12), 256, reference.transport_integrator("direct"), seed=7,
+                                      variant=VARIANT)
+    raw = rel_mse(ref.image, other.image)
+    corrected = rel_mse(ref.image, other.image, ref_stderr=ref.stderr, test_stderr=other.stderr)
+    # the uncorrected error of two equal-quality renders is their noise; the correction removes most of it
+    assert raw > 0 and abs(corrected) < 0.25 * raw
+    biased = rel_mse(ref.image, 1.1 * other.image, ref_stderr=ref.stderr, test_stderr=other.stderr)
+    assert biased > 4 * abs(corrected) and biased > 0
+
+
+def test22_unknown_light_transport_is_a_user_error():
+    with pytest.raises(UserError, match="unknown light transport 'photon'"):
+        reference.transport_integrator("photon")

@@ -142,3 +142,28 @@ def test08_scalar_variant_is_a_slow_but_correct_last_resort(room_scene):
         from suite.core.env import mitsuba
 
         mitsuba("llvm")  # the variant is process-global: restore the default for later tests
+
+
+@pytest.mark.parametrize("scene_name", ["cornell", "dabrovic_sponza"])
+def test09_compiled_surface_attributes_give_the_bits_of_the_numpy_reference(scene_name):
+    """The G-buffer's per-hit pass (numba) against the whole-array numpy expressions it replaces: positions on the
+    ray's plane intersection and barycentric, both normals, textured and flat albedo, emission; and the facing."""
+    from suite.core import gbuffer as gb
+
+    scene = load(scene_name)
+    g, o64, d64, hits = gb.trace_primary(scene, make("embree", scene), 0.0, (48, 32))
+    idx = np.nonzero(hits.prim >= 0)[0]
+    assert 0 < len(idx)
+    args = (scene, scene.positions_at(0.0), scene.normals_at(0.0), hits.prim[idx], hits.u[idx], hits.v[idx])
+    for rays in ((o64[idx], d64[idx]), ()):
+        for a, b in zip(gb.surface_attributes(*args, *rays), gb.surface_attributes_reference(*args, *rays)):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+    _, ng, ns, _, _ = gb.surface_attributes(*args, o64[idx], d64[idx])
+    d = g.view_dir.reshape(-1, 3)[idx].astype(np.float64)
+    flip = np.sign(np.einsum("ij,ij->i", ng, d))[:, None]
+    flip[flip == 0] = 1.0
+    ng_view = -flip * ng
+    ns_view = np.where(np.einsum("ij,ij->i", ns, ng_view)[:, None] < 0, -ns, ns)
+    out = gb.facing(ng, ns, g.view_dir.reshape(-1, 3)[idx])
+    assert np.array_equal(out[0], ng_view.astype(np.float32)) and np.array_equal(out[1], ns_view.astype(np.float32))
+    assert np.array_equal(out[2], flip[:, 0] < 0)

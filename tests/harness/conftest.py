@@ -43,11 +43,18 @@ def fake_reference(scene, t_s, resolution, spp, max_depth):
     return np.broadcast_to((x * (1.0 + t_s))[None, :, None], (h, w, 3)).astype(np.float32).copy()
 
 
-def fake_compare(ref, test, exposure):
+def fake_reference_set(scene, t_s, resolution, spp, transport, max_depth, exposure, floor):
+    """The fake reference of either transport (direct: 10 % darker), a small constant stderr and a fixed floor."""
+    img = fake_reference(scene, t_s, resolution, spp, max_depth) * (0.9 if transport == "direct" else 1.0)
+    floor_metrics = fake_compare(img, img + 0.01, 1.0) if floor else None
+    return SimpleNamespace(image=img, stderr=np.full_like(img, 0.001), floor=floor_metrics)
+
+
+def fake_compare(ref, test, exposure, ref_stderr=None):
     mse = float(np.mean((ref - test) ** 2))
     ssim = 1.0 / (1.0 + mse)
     return {"ssim": ssim, "dssim": (1 - ssim) / 2, "psnr_db": -10 * np.log10(max(mse, 1e-12)),
-            "nrmse": float(np.sqrt(mse)), "flip": float(np.mean(np.abs(ref - test)))}
+            "nrmse": float(np.sqrt(mse)), "flip": float(np.mean(np.abs(ref - test))), "rel_mse": mse}
 
 
 def fake_write(path, img, exposure=1.0):
@@ -55,20 +62,42 @@ def fake_write(path, img, exposure=1.0):
         np.save(f, np.asarray(img))
 
 
-@pytest.fixture
-def fake_core(monkeypatch):
+def copy_fake_method(root, name: str, config=None, as_name: str | None = None):
+    """A copy of the synthetic method ``name`` under ``root`` (as ``as_name``); ``config(text) -> text`` rewrites
+    its config.toml. Returns the copy's folder."""
+    import shutil
+
+    folder = Path(root) / (as_name or name)
+    shutil.copytree(FAKE_METHODS / name, folder)
+    if config is not None:
+        cfg = folder / "config.toml"
+        cfg.write_text(config(cfg.read_text()))
+    return folder
+
+
+def install_fake_core(setattr_):
+    """Points the runner's hooks at the stand-ins with ``setattr_(obj, name, value)`` (monkeypatch.setattr in a
+    test; plain setattr in a Dask worker process, tests/harness/dask_fake_core.py). Returns the runner."""
     from suite.harness import runner
 
-    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(FAKE_METHODS))
-    monkeypatch.setattr(runner, "load_scene", lambda spec: fake_scene())
-    monkeypatch.setattr(runner, "scene_names", lambda: ["toy"])
-    monkeypatch.setattr(runner, "make_tracer", lambda backend, scene: FakeTracer())
-    monkeypatch.setattr(runner, "backend_names", lambda: ["fake"])
-    monkeypatch.setattr(runner, "reference_image", fake_reference)
-    monkeypatch.setattr(runner, "compare_images", fake_compare)
-    monkeypatch.setattr(runner, "write_exr", fake_write)
-    monkeypatch.setattr(runner, "write_png", fake_write)
+    for name, value in (("load_scene", lambda spec: fake_scene()), ("scene_names", lambda: ["toy"]),
+                        ("make_tracer", lambda backend, scene: FakeTracer()), ("backend_names", lambda: ["fake"]),
+                        ("reference_image", fake_reference), ("reference_set", fake_reference_set),
+                        ("compare_images", fake_compare), ("write_exr", fake_write), ("write_png", fake_write)):
+        setattr_(runner, name, value)
     return runner
+
+
+@pytest.fixture
+def fake_method_copy():
+    """:func:`copy_fake_method` for tests (this conftest is not importable by name under --import-mode=importlib)."""
+    return copy_fake_method
+
+
+@pytest.fixture
+def fake_core(monkeypatch):
+    monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(FAKE_METHODS))
+    return install_fake_core(monkeypatch.setattr)
 
 
 @pytest.fixture

@@ -67,11 +67,9 @@ def test02_configs_validates_every_subgrid_point(method_with_subgrids):
     ('\n[presets.quick]\nruns = [1, 2]\n', "must be an array of tables"),
     ('\n[presets.quick]\n[[presets.quick.runs]]\n[[presets.quick.runs.runs]]\n', "may not nest runs"),
 ])
-def test03_malformed_subgrids_are_user_errors(tmp_path, fake_core, monkeypatch, text, message):
+def test03_malformed_subgrids_are_user_errors(tmp_path, fake_core, monkeypatch, text, message, fake_method_copy):
     root = tmp_path / "methods"
-    shutil.copytree(FAKE_METHODS / "synthetic_sync", root / "synthetic_sync")
-    cfg = root / "synthetic_sync" / "config.toml"
-    cfg.write_text(cfg.read_text() + text)
+    fake_method_copy(root, "synthetic_sync", lambda cfg: cfg + text)
     monkeypatch.setenv("SPLITBENCH_METHOD_PATHS", str(root))
     with pytest.raises(UserError, match=message):
         presets.preset_points(registry.get("synthetic_sync"), "quick")

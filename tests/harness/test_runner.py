@@ -36,7 +36,12 @@ def test01_run_writes_config_frames_summary_and_images(fake_config, fake_core, t
     assert summary["bytes_down"] == 12000 and summary["stats"]["frame_ms"]["p95"] >= 14.5
     names = sorted(p.name for p in (run_dir / "images").iterdir())
     assert names == sorted([f"frame_{i:04d}.exr" for i in range(3)] + [f"frame_{i:04d}.png" for i in range(3)]
-                           + [f"reference_{i:04d}.png" for i in range(3)])
+                           + [f"{kind}_{i:04d}.png" for i in range(3)
+                              for kind in ("reference", "direct_reference", "zero_latency")])
+    # every quality frame is scored against both light transports, with both references' noise floors
+    for prefix in ("", "direct_", "floor_", "direct_floor_", "zl_"):
+        assert frames[f"{prefix}rel_mse"].notna().all(), prefix
+    assert summary["light_transport"] == "direct"
 
 
 def test02_rerun_of_a_complete_run_is_skipped(fake_config, fake_core, tmp_path):
@@ -86,7 +91,7 @@ def test05_async_method_uses_updates_and_records_staleness(fake_config, fake_cor
 def test06_variant_and_set_values_reach_the_method(fake_config):
     assert fake_config(variant="paper")["params"]["gain"] == 2.0
     assert fake_config(set_values={"variant": "dim", "payload_bytes": 9})["params"] == \
-        {"payload_bytes": 9, "gain": 0.5, "label": "plain"}
+        {"payload_bytes": 9, "gain": 0.5, "label": "plain", "work_ms": 0.0}
 
 
 @pytest.mark.parametrize("kwargs, needle", [

@@ -156,16 +156,21 @@ class Device:
             prim = dr.gather(self.Int32, t._face_table, first + pi.prim_index, valid)
         return dr.select(valid, prim, -1)
 
-    def closest_backend(self, o_local, d, length, active=True):
-        """One backend closest-hit query: (t, prim, u, v) with misses normalised (inf, -1, 0, 0)."""
+    def closest_backend(self, o_local, d, length, active=True, group=None):
+        """One backend closest-hit query: (t, prim, u, v) with misses normalised (inf, -1, 0, 0). ``group``: a
+        :class:`~suite.core.trace.mitsuba_backend.MitsubaGroup` to query instead of the whole scene."""
         dr = self.dr
-        pi = self.tracer.query_scene.ray_intersect_preliminary(self.ray(o_local, d, length), coherent=False,
-                                                               active=active)
+        scene = self.tracer.query_scene if group is None else group.mscene
+        pi = scene.ray_intersect_preliminary(self.ray(o_local, d, length), coherent=False, active=active)
         valid = pi.is_valid() & active
         t = dr.select(valid, pi.t, dr.inf)
         u = dr.select(valid, pi.prim_uv.x, 0.0)
         v = dr.select(valid, pi.prim_uv.y, 0.0)
-        return t, self.global_prim(pi, valid), u, v
+        if group is None:
+            prim = self.global_prim(pi, valid)
+        else:
+            prim = dr.select(valid, dr.gather(self.Int32, group.face_table, pi.prim_index, valid), -1)
+        return t, prim, u, v
 
     def closest(self, o_local, d, length, active=True):
         """Closest opaque hit of tracing-frame rays: ``(t, prim, u, v, traced)``, lazily. ``traced`` counts the backend
@@ -175,12 +180,13 @@ class Device:
             return t, prim, u, v, None
         return self._skip_transparent(o_local, d, length, t, prim, u, v, active)
 
-    def _skip_transparent(self, o_local, d, length, t, prim, u, v, active):
+    def _skip_transparent(self, o_local, d, length, t, prim, u, v, active, group=None):
         """:meth:`suite.core.trace.base.Tracer._skip_transparent` on the device, in the same float64 steps.
 
         The loop runs for lanes whose hit lies on an alpha-tested face (``pending``, one table lookup); its body first
         looks up the opacity there, so the texture work is done only in the (rare) packets that hit such a face, not
-        masked in every packet. ``layers`` counts re-traces, as the host loop's iterations do."""
+        masked in every packet. ``layers`` counts re-traces, as the host loop's iterations do. ``group``: re-trace
+        against that sub-scene (the alpha-tested faces) instead of the whole scene."""
         dr, F, F64, U = self.dr, self.Float, self.Float64, self.UInt32
         tables = self.tables
         pending = tables.tested_face(prim, active)
@@ -204,7 +210,7 @@ class Device:
             gone = todo & (remaining <= 0.0)
             go = todo & ~gone
             o_next = self.Point3f(F(o64.x + d64.x * start), F(o64.y + d64.y * start), F(o64.z + d64.z * start))
-            t2, p2, u2, v2 = self.closest_backend(o_next, d, F(remaining), go)
+            t2, p2, u2, v2 = self.closest_backend(o_next, d, F(remaining), go, group)
             t = dr.select(go, dr.select(p2 >= 0, F(start + F64(t2)), dr.inf), dr.select(gone, dr.inf, t))
             prim = dr.select(go, p2, dr.select(gone, -1, prim))
             u = dr.select(go, u2, dr.select(gone, 0.0, u))
@@ -218,14 +224,34 @@ class Device:
         return t, prim, u, v, traced
 
     def occluded_rays(self, o_local, d, length, active=True):
-        """Shadow-ray query of tracing-frame rays: ``(blocked, closest_traced)``, lazily. With alpha-tested materials a
-        ray the backend finds blocked is walked past its transparent hits (:meth:`closest`) and is blocked only if an
-        opaque hit remains; ``closest_traced`` counts those closest-hit queries per lane (None without alpha)."""
-        blocked = self.tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
-        if self.tracer._alpha is None:
+        """Shadow-ray query of tracing-frame rays: ``(blocked, closest_traced)``, lazily. With alpha-tested materials,
+        as the host's :meth:`~suite.core.trace.base.Tracer._occluded_split`: an any-hit query against the whole
+        scene, one against the opaque faces for the rays it found blocked, and the rest walk the alpha-tested faces (closest hit, alpha test, re-trace past
+        transparent texels; :meth:`_skip_transparent`); ``closest_traced`` counts those closest-hit queries per lane
+        (None without alpha)."""
+        tracer = self.tracer
+        if tracer._alpha is None:
+            blocked = tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
             return blocked, None
-        _, prim, _, _, traced = self.closest(o_local, d, length, blocked)
-        return blocked & (prim >= 0), traced
+        groups = tracer._alpha_groups()
+        if groups is None:  # the whole-scene walk of the rays the any-hit query found blocked
+            blocked = tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
+            _, prim, _, _, traced = self.closest(o_local, d, length, blocked)
+            return blocked & (prim >= 0), traced
+        opaque, alpha = groups
+        dr = self.dr
+        ray = self.ray(o_local, d, length)
+        hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
+        if alpha.mscene is None:  # no face uses the alpha-tested materials
+            return hit, dr.zeros(self.UInt32, dr.width(d))
+        if opaque.mscene is None:
+            by_opaque = dr.zeros(self.Bool, dr.width(d))
+        else:
+            by_opaque = opaque.mscene.ray_test(ray, coherent=False, active=hit) & hit
+        walk = hit & ~by_opaque
+        t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
+        _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
+        return by_opaque | (walk & (prim >= 0)), traced
 
     # ------------------------------------------------------------------------------------------ public, evaluated
     def _rays_in_frame(self, o, d, tmin, tmax):

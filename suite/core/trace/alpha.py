@@ -25,6 +25,34 @@ MAX_ALPHA_LAYERS = 64
 ALPHA_STEP_ULPS = 16.0
 
 
+def _transparent(prim, u, v, faces, uvs, face_material, mid, texture, threshold, out):
+    """``out[i] = True`` where hit i lies on a face of material ``mid`` whose bilinear opacity (``texture`` (H, W, 1),
+    :func:`suite.core.gbuffer.lookup_texture`'s conventions) is below ``threshold``: :meth:`AlphaTest.opacity` and
+    the comparison of :meth:`AlphaTest.transparent` per hit, in their float64 order."""
+    h, w = texture.shape[0], texture.shape[1]
+    for i in range(len(prim)):
+        p = prim[i]
+        if p < 0 or face_material[p] != mid:
+            continue
+        b1, b2 = np.float64(u[i]), np.float64(v[i])
+        b0 = (1.0 - b1) - b2
+        f0, f1, f2 = faces[p, 0], faces[p, 1], faces[p, 2]
+        uvx = (np.float64(uvs[f0, 0]) * b0 + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
+        uvy = (np.float64(uvs[f0, 1]) * b0 + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
+        x = uvx * w - 0.5
+        y = uvy * h - 0.5
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        x0i, y0i = np.int64(x0) % w, np.int64(y0) % h
+        x1i, y1i = (x0i + 1) % w, (y0i + 1) % h
+        val = (((1 - fx) * (1 - fy) * np.float64(texture[y0i, x0i, 0]) + fx * (1 - fy) * np.float64(texture[y0i, x1i, 0]))
+               + (1 - fx) * fy * np.float64(texture[y1i, x0i, 0])) + fx * fy * np.float64(texture[y1i, x1i, 0])
+        out[i] = np.float32(val) < threshold
+
+
+_transparent_kernel = None
+
+
 class AlphaTest:
     """Per-face opacity lookup for the alpha-tested materials of a scene."""
 
@@ -73,7 +101,24 @@ class AlphaTest:
         return out
 
     def transparent(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """(N,) bool: the hit lies where its material's opacity is below its threshold (misses are not)."""
+        """(N,) bool: the hit lies where its material's opacity is below its threshold (misses are not). One compiled
+        pass over the hits per alpha-tested material (the bits of :meth:`transparent_reference`)."""
+        global _transparent_kernel
+        if _transparent_kernel is None:
+            import numba
+
+            _transparent_kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(_transparent)
+        prim = np.ascontiguousarray(prim, np.int32)
+        u, v = (np.ascontiguousarray(x, x.dtype if x.dtype in (np.float32, np.float64) else np.float64)
+                for x in (np.asarray(u), np.asarray(v)))
+        out = np.zeros(len(prim), bool)
+        for mid, tex in self.textures.items():
+            _transparent_kernel(prim, u, v, self.faces, self.uvs, self.face_material, mid,
+                                np.ascontiguousarray(tex, np.float32), self.threshold[mid], out)
+        return out
+
+    def transparent_reference(self, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """:meth:`transparent` as whole-array numpy expressions (:meth:`opacity` and a comparison)."""
         prim = np.asarray(prim)
         out = np.zeros(len(prim), bool)
         idx = self._tested(prim)

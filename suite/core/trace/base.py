@@ -17,6 +17,12 @@ carry their own rounding.
 
 A tracer reuses its ray buffers from query to query, so one tracer serves one thread at a time.
 
+Alpha-tested shadow rays: a backend that can build sub-scenes (``_subscene``) answers ``occluded`` in two groups
+(:meth:`Tracer._occluded_split`): the backend's any-hit query against the whole scene, then, for the rays it found
+blocked, one against the opaque faces, and only the rays blocked by alpha-tested faces alone walk those faces with
+closest-hit queries and the alpha test. ``rays_occluded`` counts shadow rays (the opaque-faces query refines the
+answer for a ray already counted), ``rays_intersect`` every closest-hit query of the walk.
+
 Animated scenes: ``update(t_s)`` moves the scene's rigidly animated objects; backends keep static and moving
 geometry apart so that an update rebuilds only what moved.
 """
@@ -145,6 +151,7 @@ class Tracer:
         from suite.core.trace.alpha import AlphaTest
 
         self._alpha = AlphaTest.for_scene(scene)  # None unless a material is alpha-tested
+        self._groups = None  # (opaque, alpha-tested) sub-scenes of the alpha-aware shadow query, built on first use
 
     def local_positions(self, positions: np.ndarray) -> np.ndarray:
         """Vertex positions in the tracing frame (float32)."""
@@ -177,12 +184,14 @@ class Tracer:
             t[miss], u[miss], v[miss] = np.inf, 0.0, 0.0
         return t, prim, u, v
 
-    def _skip_transparent(self, o, d, length, t, prim, u, v):
+    def _skip_transparent(self, o, d, length, t, prim, u, v, closest=None):
         """Alpha test (:mod:`suite.core.trace.alpha`): rays whose hit is transparent are traced again from just
         past it, until the hit is opaque, the ray leaves its interval or ``MAX_ALPHA_LAYERS`` are crossed.
-        ``t`` is relative to the tracing-frame origins ``o``; every re-traced ray counts in ``rays_intersect``."""
+        ``t`` is relative to the tracing-frame origins ``o``; every re-traced ray counts in ``rays_intersect``.
+        ``closest`` is the closest-hit query of the re-traces (:meth:`_closest`, or a sub-scene's)."""
         from suite.core.trace.alpha import MAX_ALPHA_LAYERS, step_past
 
+        closest = self._closest if closest is None else closest
         rows = o.T if self.soa_origins else o  # (N, 3) view either way
         todo = np.nonzero(self._alpha.transparent(prim, u, v))[0]
         for _ in range(MAX_ALPHA_LAYERS):
@@ -201,11 +210,29 @@ class Tracer:
             if self.soa_origins:
                 o_next = np.ascontiguousarray(o_next.T)
             self.counters["rays_intersect"] += len(todo)
-            t2, p2, u2, v2 = self._closest(o_next, np.ascontiguousarray(d[todo]), remaining.astype(np.float32))
+            t2, p2, u2, v2 = closest(o_next, np.ascontiguousarray(d[todo]), remaining.astype(np.float32))
             t[todo] = np.where(p2 >= 0, start + t2, np.inf).astype(np.float32)
             prim[todo], u[todo], v[todo] = p2, u2, v2
             todo = todo[self._alpha.transparent(p2, u2, v2)]
         return t, prim, u, v
+
+    def _rows(self, o, d, length, idx):
+        """The rays ``idx`` of tracing-frame rays, contiguous, in the backend's origin layout."""
+        rows = o.T if self.soa_origins else o
+        o_sub = np.ascontiguousarray(rows[idx])
+        if self.soa_origins:
+            o_sub = np.ascontiguousarray(o_sub.T)
+        return o_sub, np.ascontiguousarray(d[idx]), np.ascontiguousarray(length[idx])
+
+    def _walk_alpha(self, o, d, length, idx, closest=None):
+        """(len(idx),) bool: a closest-hit walk of rays ``idx`` past their transparent hits
+        (:meth:`_skip_transparent`) meets an opaque hit within their length."""
+        o_sub, d_sub, len_sub = self._rows(o, d, length, idx)
+        closest = self._closest if closest is None else closest
+        self.counters["rays_intersect"] += len(idx)
+        t, prim, u, v = closest(o_sub, d_sub, len_sub.copy())
+        _, prim, _, _ = self._skip_transparent(o_sub, d_sub, len_sub, t, prim, u, v, closest)
+        return prim >= 0
 
     def _occluded_alpha(self, o, d, length, occluded):
         """Shadow rays through alpha-tested surfaces: a ray the backend found blocked is blocked only if a closest-hit
@@ -213,17 +240,49 @@ class Tracer:
         idx = np.nonzero(occluded)[0]
         if len(idx) == 0:
             return occluded
-        rows = o.T if self.soa_origins else o
-        o_sub = np.ascontiguousarray(rows[idx])
-        if self.soa_origins:
-            o_sub = np.ascontiguousarray(o_sub.T)
-        d_sub, len_sub = np.ascontiguousarray(d[idx]), np.ascontiguousarray(length[idx])
-        self.counters["rays_intersect"] += len(idx)
-        t, prim, u, v = self._closest(o_sub, d_sub, len_sub.copy())
-        _, prim, _, _ = self._skip_transparent(o_sub, d_sub, len_sub, t, prim, u, v)
         out = np.asarray(occluded, bool).copy()
-        out[idx] = prim >= 0
+        out[idx] = self._walk_alpha(o, d, length, idx)
         return out
+
+    def _subscene(self, faces: np.ndarray, positions: np.ndarray):
+        """A backend scene over ``faces`` (global indices) at tracing-frame ``positions``, with ``occluded(o, d,
+        length)`` and ``closest(o, d, length) -> (t, global prim, u, v)`` (misses normalised); None where the backend
+        builds none (then shadow rays take the whole-scene walk)."""
+        return None
+
+    def _alpha_groups(self):
+        """(opaque, alpha-tested) sub-scenes at the tracer's current time, built on first use and again after
+        animated objects moved; None where the backend builds none."""
+        if self._groups is None:
+            tested = self._alpha.face_tested
+            positions = self.scene.positions_at(self._time_s) if self.scene.object_animations else self.scene.positions
+            local = self.local_positions(positions)
+            opaque = self._subscene(np.nonzero(~tested)[0].astype(np.int32), local)
+            alpha = self._subscene(np.nonzero(tested)[0].astype(np.int32), local) if opaque is not None else None
+            self._groups = (opaque, alpha) if alpha is not None else False
+        return self._groups or None
+
+    def _occluded_split(self, o, d, length):
+        """Shadow rays through alpha-tested surfaces in three steps: an any-hit query against the whole scene (the
+        backend's raw query: rays it leaves open are open); the rays it finds blocked, an any-hit query against the
+        opaque faces only (blocked for good); the rest, blocked by alpha-tested faces alone, walk those faces only
+        (closest hit, alpha test, re-trace past transparent texels). The same answer as the whole-scene walk of
+        :meth:`_occluded_alpha` except where an opaque face lies within the re-trace step (``ALPHA_STEP_ULPS``)
+        behind a transparent texel or ties with it: there the opaque face blocks the ray."""
+        occ = np.array(self._occluded(o, d, length.copy()), bool)  # embreex overwrites the lengths it is given
+        groups = self._alpha_groups()
+        if groups is None:
+            return self._occluded_alpha(o, d, length, occ)
+        opaque, alpha = groups
+        idx = np.nonzero(occ)[0]
+        if len(idx) == 0:
+            return occ
+        o_sub, d_sub, len_sub = self._rows(o, d, length, idx)
+        by_opaque = np.asarray(opaque.occluded(o_sub, d_sub, len_sub.copy()), bool)
+        rest = np.nonzero(~by_opaque)[0]
+        if len(rest):
+            occ[idx[rest]] = self._walk_alpha(o_sub, d_sub, len_sub, rest, alpha.closest)
+        return occ
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
         o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins, self._scratch)
@@ -232,8 +291,7 @@ class Tracer:
             return np.zeros(0, bool)
         if self._alpha is None:
             return self._occluded(o, d, length)
-        occ = self._occluded(o, d, length.copy())  # embreex overwrites the lengths it is given
-        return self._occluded_alpha(o, d, length, occ)
+        return self._occluded_split(o, d, length)
 
     def occluded_local(self, o, d, length) -> np.ndarray:
         """``occluded`` for rays already in the tracing frame: float32 origins minus ``shift`` (shape (3, N) if
@@ -248,8 +306,7 @@ class Tracer:
             return np.zeros(0, bool)
         if self._alpha is None:
             return self._occluded(o, d, length)
-        occ = self._occluded(o, d, length.copy())  # embreex overwrites the lengths it is given
-        return self._occluded_alpha(o, d, length, occ)
+        return self._occluded_split(o, d, length)
 
     def update(self, t_s: float) -> None:
         """Moves animated objects to their pose at ``t_s`` (no-op for static scenes)."""
@@ -258,6 +315,7 @@ class Tracer:
             return
         self._update(t_s)
         self._time_s = t_s
+        self._groups = None  # the alpha groups hold the old positions
 
     def reset_counters(self) -> None:
         for k in self.counters:

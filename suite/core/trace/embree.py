@@ -28,6 +28,31 @@ def build_embree_scene(triangles: np.ndarray):
     return scene
 
 
+class EmbreeGroup:
+    """An Embree scene over a subset of the faces (the alpha groups of :meth:`Tracer._occluded_split`)."""
+
+    def __init__(self, faces: np.ndarray, triangles: np.ndarray):
+        self.faces = faces
+        self.escene = build_embree_scene(triangles[faces]) if len(faces) else None
+
+    def occluded(self, o, d, length):
+        if self.escene is None:
+            return np.zeros(len(d), bool)
+        return self.escene.run(o, d, dists=length, query="OCCLUDED") != -1
+
+    def closest(self, o, d, length):
+        n = len(d)
+        if self.escene is None:
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32), \
+                np.zeros(n, np.float32)
+        res = self.escene.run(o, d, dists=length, output=1)
+        local = np.asarray(res["primID"], np.int64)
+        hit = local >= 0
+        prim = np.where(hit, self.faces[np.where(hit, local, 0)], -1).astype(np.int32)
+        t = np.where(hit, res["tfar"], np.inf).astype(np.float32)
+        return t, prim, np.where(hit, res["u"], 0.0).astype(np.float32), np.where(hit, res["v"], 0.0).astype(np.float32)
+
+
 class EmbreeTracer(Tracer):
     name = "embree"
 
@@ -43,6 +68,9 @@ class EmbreeTracer(Tracer):
         if self.scene.moved_objects(self._time_s, t_s):
             self._build(self.scene.positions_at(t_s))
             self.rebuilds += 1
+
+    def _subscene(self, faces, positions):
+        return EmbreeGroup(faces, self.scene.triangles(positions))
 
     def _intersect(self, o, d, length):
         res = self.escene.run(o, d, dists=length, output=1)

@@ -163,6 +163,21 @@ class MitsubaTracer(Tracer):
         return np.array(self.query_scene.ray_test(self._rays(o, d, length)), bool)
 
     # Raw access for the overhead benchmark: (N, 3) float32 rays handed to Mitsuba directly, as a user would.
+    def _subscene(self, faces, positions):
+        if self.is_scalar:
+            return None
+        import mitsuba as mi
+
+        active = mi.variant()
+        mi.set_variant(self.variant)  # load_dict builds with the active variant: this tracer's, then the caller's
+        try:
+            scene = mi.load_dict({"type": "scene", "group": self._mesh("group", positions, faces)}) if len(faces) \
+                else None
+        finally:
+            if active is not None and active != self.variant:
+                mi.set_variant(active)
+        return MitsubaGroup(self, faces, scene)
+
     def _raw_ray(self, o, d, length):
         return self._rays(np.asarray(o).T, d, length)
 
@@ -173,3 +188,26 @@ class MitsubaTracer(Tracer):
         pi = self.mscene.ray_intersect_preliminary(self._raw_ray(o, d, length), coherent=False)
         self.dr.eval(pi.t, pi.prim_index, pi.prim_uv)
         return np.array(pi.t), np.array(pi.prim_index), np.array(pi.prim_uv)
+
+
+class MitsubaGroup:
+    """A Mitsuba scene over a subset of the faces, one mesh (the alpha groups of ``Tracer._occluded_split``, and of
+    the device's shadow rays)."""
+
+    def __init__(self, tracer: MitsubaTracer, faces: np.ndarray, mscene):
+        self.tracer, self.faces, self.mscene = tracer, faces, mscene
+        self.face_table = tracer.m.Int32(faces.astype(np.int32)) if len(faces) else None  # local prim -> face
+
+    def occluded(self, o, d, length):
+        if self.mscene is None:
+            return np.zeros(len(d), bool)
+        return np.array(self.mscene.ray_test(self.tracer._rays(o, d, length), coherent=False), bool)
+
+    def closest(self, o, d, length):
+        n = len(d)
+        if self.mscene is None:
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32), \
+                np.zeros(n, np.float32)
+        t, prim, u, v = self.tracer.device.closest_backend(*self.tracer._ray_parts(o, d, length), group=self)
+        self.tracer.dr.eval(t, prim, u, v)
+        return np.array(t, np.float32), np.array(prim, np.int32), np.array(u, np.float32), np.array(v, np.float32)

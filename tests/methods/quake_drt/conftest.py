@@ -54,3 +54,16 @@ def renderer():
 @pytest.fixture
 def two_rooms():
     return testscenes.two_rooms
+
+
+SMALL_MAP = "oa:aggressor"
+
+
+@pytest.fixture
+def small_map():
+    """The smallest OpenArena map's name; the test is skipped when the OpenArena data is not installed."""
+    from suite.core.scene import list_scenes
+
+    if list_scenes().get(SMALL_MAP, "unavailable").startswith("unavailable"):
+        pytest.skip(f"{SMALL_MAP} needs the OpenArena data")
+    return SMALL_MAP

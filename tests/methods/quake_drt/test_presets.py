@@ -34,3 +34,16 @@ def test03_quick_holds_the_claims_runs():
     assert quality >= {"default", "denoiser_no_taa", "one_light", "all_lights", "all_lights_taa"}
     assert {c["scene"] for c in configs} == {"oa:aggressor@pak1-maps", "oa:kaos"}
     assert {c["scene"] for c in configs if c["variant"] == "no_culling"} == {"oa:aggressor@pak1-maps", "oa:kaos"}
+
+
+def test04_full_runs_at_the_thesis_scale_and_compare_pits_local_against_streamed():
+    full = _configs("full")
+    assert {tuple(c["resolution"]) for c in full} >= {(640, 360), (1280, 720), (1920, 1080), (2560, 1440)}
+    assert max(c["params"]["gt_frames"] for c in full) == 1500  # §7.2's accumulated ground truth
+    assert {c["net"] for c in full if c["variant"] == "streamed"} == {"lan-home", "wan-50m"}
+    from suite.harness import registry
+
+    table = presets.method_compare_table(registry.get("quake_drt"), "compare")
+    assert table["variants"] == ["default", "streamed"]
+    assert presets.uses_network(registry.get("quake_drt"), "streamed", table["set"])
+    assert not presets.uses_network(registry.get("quake_drt"), "default", table["set"])

@@ -20,17 +20,18 @@ def _work_ms(shadow, spp=1, denoiser=False):
 
 
 def _run(root, variant, frames, frame_ms, rays, k=1, spp=1, gt=None, cull=True, denoiser=True, taa=True,
-         extra=None):
-    name = f"quake_drt-{variant}-k{k}-s{spp}-f{frames}"
+         extra=None, placement="local", net="ideal"):
+    name = f"quake_drt-{variant}-k{k}-s{spp}-f{frames}-{net}"
     d = root / name
     d.mkdir(parents=True)
     params = {"num_random_dl": k, "spp": spp, "cull_lights": cull, "denoiser": denoiser, "taa": taa,
-              "gt_frames": 64 if gt else 0}
+              "gt_frames": 64 if gt else 0, "placement": placement}
     (d / "config.json").write_text(json.dumps({"config": {"backend": "embree", "params": params}}))
     rows = []
     for i in range(frames):
         shadow = rays[i] if isinstance(rays, list) else rays
         row = {"run": name, "method": "quake_drt", "variant": variant, "scene": SCENE, "resolution": RES,
+               "net": net, "protocol": "udp" if net != "ideal" else "tcp",
                "frames": frames, "frame": i, "frame_ms": frame_ms[i] if isinstance(frame_ms, list) else frame_ms,
                "ssim": np.nan, "info_shadow_rays": shadow, "rays": spp * (shadow + PRIMARY_RAYS),
                "pixels": 3 * PIXELS, "work_taps": 8_000_000 if denoiser else 0, "work_points": 0,
@@ -64,7 +65,7 @@ def stored(tmp_path):
     ]
     frames = pd.DataFrame([r for _, rows in runs for r in rows])
     bench = {"asvgf": {"scene": SCENE, "backend": "embree", "repeats": 3, "fit": {"ms_per_mp": 6000.0,
-             "intercept_ms": 30.0, "r2": 0.999, "exponent": 0.95},
+             "r2": 0.999, "exponent": 0.95},
              "rows": [{"resolution": [160, 90], "megapixels": 0.0144, "denoiser_ms": 99.0}]}}
     (tmp_path / "bench").mkdir()
     (tmp_path / "bench" / "quake_drt.json").write_text(json.dumps(bench))
@@ -116,3 +117,24 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
 def test04_no_runs_no_bench_still_builds():
     html = report.section(pd.DataFrame(), [])
     assert "No stored runs" in html and "No stored benchmark" in html
+
+
+def test05_streamed_runs_get_their_own_table_and_stay_out_of_the_thesis_claims(stored, tmp_path):
+    frames, dirs, root = stored
+    status = ["ok", "ok", "damaged", "frozen"]
+    extra = [{"info_wire_bytes": 4000 + 100 * i, "latency_ms": 50.0 + i, "server_ms": 30.0, "info_status": st,
+              "stage_encode_ms": 2.0, "net_video_ms": 10.0, "stage_decode_ms": 1.0, "zl_psnr_db": 40.0}
+             for i, st in enumerate(status)]
+    d, rows = _run(root, "streamed", 4, 100.0, 40_000, placement="streamed", net="wan-50m")
+    for r, e in zip(rows, extra):
+        r.update(e)
+    # a local run the cross-method matrix repeated on another network: it sends nothing, so it adds nothing
+    d2, rows2 = _run(root, "all_lights", 4, 120.0, 400_000, k=0, denoiser=False, taa=False, net="lte")
+    both = pd.concat([frames, pd.DataFrame(rows + rows2)], ignore_index=True)
+    local, streamed = report.split_placements(report.prepare(both, dirs + [d, d2]))
+    assert set(streamed["run"]) == {d.name} and d2.name not in set(local["run"])
+    t = report.streamed_table(streamed)
+    assert len(t) == 1 and t.iloc[0]["damaged"] == 1 and t.iloc[0]["frozen"] == 1
+    assert t.iloc[0]["wire bytes/frame"] == pytest.approx(np.mean([4100, 4200, 4300]))  # frame 0 left out
+    html = report.section(both, dirs + [d, d2], out_dir=tmp_path / "report", results_root=root)
+    assert "Streamed placement" in html

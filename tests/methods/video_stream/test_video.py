@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from suite.core import video
-from methods.video_stream.method import VideoStream, _has_idr
+from methods.video_stream.method import VideoStream
 from suite.errors import UserError
 
 
@@ -55,7 +55,7 @@ def test03_encode_decode_is_deterministic_and_close_to_the_input():
 
 def test04_idr_frames_come_every_keyint_frames():
     enc = _encoder(keyint=3)
-    flags = [_has_idr("h264", enc.encode(video.to_video(img, 1.0)).data) for img in _frames(7)]
+    flags = [video.has_idr("h264", enc.encode(video.to_video(img, 1.0)).data) for img in _frames(7)]
     assert flags == [True, False, False, True, False, False, True]
 
 

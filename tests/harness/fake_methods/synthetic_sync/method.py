@@ -1,4 +1,6 @@
 """Test-only sync method: the server 'renders' a seeded numpy image, the client 'decodes' it."""
+import time
+
 import numpy as np
 
 from suite.harness.method import Method
@@ -22,6 +24,8 @@ class SyntheticSync(Method):
         with ctx.stage("gbuffer", place="client", after=[]) as st:
             st.pixels = ctx.resolution[0] * ctx.resolution[1]
         with ctx.stage("render", place="server", after=["pose"]) as st:
+            if self.params.get("work_ms", 0.0) > 0:
+                time.sleep(self.params["work_ms"] / 1e3)
             img = render(ctx.t_s, ctx.resolution, ctx.seed, self.params["gain"], ctx.tracer)
             st.pixels = img.shape[0] * img.shape[1]
         msg = ctx.send("frame", int(self.params["payload_bytes"]), direction="down", after=["render"])
