@@ -80,6 +80,8 @@ def jpeg_decode(data: bytes, shape) -> np.ndarray:
 class LayeredPVS(Method):
     name = "layered_pvs"
     mode = "async"
+    # Layers are path traced on the server (§4.4: next-event estimation, Russian roulette): multi-bounce transport.
+    light_transport = "global"
     update_outputs = {
         **{f"bytes_{p}": f"bytes of the '{p}' part of the update" for p in PARTS},
         "bytes_header": "bytes of the header and part table",
@@ -200,17 +202,9 @@ class LayeredPVS(Method):
         shape = layers.prim.shape
         with ctx.stage("denoise", place="server") as sg:
             k, y, x = frag.index
-            grid = lambda vals, dim: _scatter(vals, (k, y, x), shape, dim)  # noqa: E731
-            illum_g = grid(illum, 3)
             iters = int(p["denoise_iterations"])
-            if iters > 0 and len(frag.position):
-                var = np.maximum(m2 - m1 * m1, 0.0) / max(int(p["spp"]), 1)
-                pix_angle = 2 * math.tan(math.radians(view.fov_deg) / 2) / view.width
-                var_g = server.spatial_variance(illum_g, layers.valid, grid(var, 0))
-                illum_g = server.svgf_layers(illum_g, var_g, grid(frag.position, 3), grid(frag.normal, 3),
-                                             layers.valid, np.where(layers.valid, layers.t, 0.0), pix_angle,
-                                             iterations=iters)
-            radiance = illum_g[k, y, x] * frag.albedo + frag.emission
+            illum = server.denoise_fragments(view, layers, frag, illum, m1, m2, int(p["spp"]), iters)
+            radiance = illum * frag.albedo + frag.emission
             colour = np.zeros(shape + (3,), np.uint8)
             colour[k, y, x] = video.to_video(radiance[None].astype(np.float32), float(p["exposure"]))[0]
             sg.count(taps=len(frag.position) * 25 * iters)
@@ -430,12 +424,6 @@ def _warm_up() -> None:
                        one, np.ones((1, 1, 1)), 0.01, iterations=1)
     codecs.huffman_decode(codecs.huffman_encode(b"ab"))
     packing.relocate(np.ones((2, 8, 8), np.float32), np.ones((2, 8, 8), bool), 8)
-
-
-def _scatter(values: np.ndarray, index, shape, dim: int) -> np.ndarray:
-    out = np.zeros(shape + ((dim,) if dim else ()), np.float64)
-    out[index] = values
-    return out
 
 
 def _canonical_vertices(positions: np.ndarray) -> np.ndarray:

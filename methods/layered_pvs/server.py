@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
+from suite.core import shading
 from suite.core.gbuffer import camera_rays, surface_attributes
 from suite.core.scene.model import CameraPose
 from suite.core.trace.robust import offset_ray_origin
@@ -186,10 +188,10 @@ def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, 
 
 
 class LightSampler:
-    """Point lights and emissive triangles for next-event estimation (§4.4: one randomly selected light per
-    vertex). With at most ``PER_POINT_LIGHTS`` lights a light is chosen in proportion to its unoccluded irradiance
-    bound at the shading point (power / squared distance, a triangle at its centroid); with more, in proportion
-    to power. Both are unbiased; the first keeps far, strong lights (the 10 km sun and sky lights of the Quake
+    """Point lights and emissive triangles for next-event estimation at the path vertices after the primary
+    fragment (§4.4: one randomly selected light per vertex). With at most ``PER_POINT_LIGHTS`` lights a light
+    is chosen in proportion to its unoccluded irradiance bound at the shading point (power / squared distance, a
+    triangle at its centroid); with more, in proportion to power. Both are unbiased; the first keeps far, strong lights (the 10 km sun and sky lights of the Quake
     levels) from taking nearly every sample from the nearby ones."""
 
     PER_POINT_LIGHTS = 2048
@@ -289,16 +291,38 @@ def _cosine_hemisphere(n, u):
     return lx[:, None] * t + ly[:, None] * b + lz[:, None] * n
 
 
+def direct_illumination(scene, tracer, frag: Fragments, t_s: float, area_samples: int, seed: int) -> np.ndarray:
+    """Demodulated direct illumination (N, 3) at the fragments from the suite's direct-lighting kernels
+    (:func:`suite.core.shading.compose_direct`, host path): every point light with its own shadow ray, area
+    lights with ``area_samples`` stratified samples. The fragments are shaded as an (N, 1) G-buffer of albedo 1
+    without emission."""
+    n = len(frag.position)
+    col = lambda a: np.ascontiguousarray(a, np.float64).reshape(n, 1, -1)  # noqa: E731
+    g = SimpleNamespace(depth=np.zeros((n, 1)), valid=np.ones((n, 1), bool), position=col(frag.position),
+                        normal=col(frag.normal), geo_normal=col(frag.geo_normal), albedo=np.ones((n, 1, 3)),
+                        emission=np.zeros((n, 1, 3)))
+    return shading.compose_direct(shading, scene, g, tracer, t_s, area_samples, seed).reshape(n, 3)
+
+
 def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
-    """Path tracing of every fragment (§4.4): ``spp`` paths per fragment, next-event estimation at every vertex
-    towards one light chosen by power, cosine-sampled Lambertian bounces, Russian roulette from vertex
-    ``rr_depth`` on. ``max_depth`` counts vertices as Mitsuba does (2 = direct light only). Every material is
-    shaded as Lambertian with its albedo. Returns the primary fragments' *demodulated* incident illumination
-    (radiance / albedo, without their emission) and the first two moments of its luminance per fragment."""
+    """Path tracing of every fragment (§4.4): ``spp`` paths per fragment, next-event estimation at every vertex,
+    cosine-sampled Lambertian bounces, Russian roulette from vertex ``rr_depth`` on. ``max_depth`` counts
+    vertices as Mitsuba does (2 = direct light only). Every material is shaded as Lambertian with its albedo.
+    Returns the primary fragments' *demodulated* incident illumination (radiance / albedo, without their
+    emission) and the first two moments of its luminance per fragment.
+
+    Next-event estimation at the primary fragment takes every light (:func:`direct_illumination`, the suite's
+    kernels; ``spp`` area-light samples), at later vertices one light (:class:`LightSampler`). Differs from the
+    thesis (§4.4: "every hitpoint at the path is connected with shadow ray to randomly selected light source"):
+    with the Quake levels' ~100 point lights, one light per primary fragment leaves heavy-tailed noise (the
+    direct light comes from rare bright samples) that the layered SVGF, without the thesis's temporal
+    accumulation, rejects through its luminance edge-stopping; the denoised layers came out about half as
+    bright as the reference (tests/methods/layered_pvs/test_radiance.py)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
         return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
+    direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), int(rng.integers(1 << 31)))
     positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
     shift = getattr(tracer, "shift", None)
     lum_w = np.array([0.2126, 0.7152, 0.0722])
@@ -310,25 +334,10 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     ng = np.tile(frag.geo_normal, (spp, 1))
     ns = np.tile(frag.normal, (spp, 1))
     thr = np.ones((total, 3))          # demodulated: the primary vertex's albedo is left out
-    sample = np.zeros((total, 3))
+    sample = np.tile(direct.astype(np.float64), (spp, 1))
     depth = 1
-    while len(rows):
+    while len(rows) and depth + 1 < max_depth:
         m = len(rows)
-        # Next-event estimation towards one light.
-        wi, dist, wl, ok = lights.sample(p, rng.random(m), rng.random((m, 2)))
-        cos_x = _dot(wi, ns)
-        ok &= cos_x > 0
-        if ok.any():
-            sel = np.nonzero(ok)[0]
-            side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
-            o = offset_ray_origin(p[sel], side, shift)
-            seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
-            occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
-                                  (seg * SHADOW_TMAX_SCALE).astype(np.float32))
-            lit = sel[~occ]
-            sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
-        if depth + 1 >= max_depth:
-            break
         # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
         if depth >= rr_depth:
             q = np.minimum(thr.max(axis=1), 0.95)
@@ -353,6 +362,20 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
         thr = thr * alb2
         p = p2
         depth += 1
+        m = len(rows)
+        # Next-event estimation towards one light.
+        wi, dist, wl, ok = lights.sample(p, rng.random(m), rng.random((m, 2)))
+        cos_x = _dot(wi, ns)
+        ok &= cos_x > 0
+        if ok.any():
+            sel = np.nonzero(ok)[0]
+            side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
+            o = offset_ray_origin(p[sel], side, shift)
+            seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
+            occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
+                                  (seg * SHADOW_TMAX_SCALE).astype(np.float32))
+            lit = sel[~occ]
+            sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
     per = sample.reshape(spp, n, 3)
     illum = per.sum(axis=0)
     lum = per @ lum_w
@@ -461,6 +484,30 @@ def _svgf():
 
         _svgf_kernel = atrous
     return _svgf_kernel
+
+
+def scatter_fragments(values: np.ndarray, index, shape, dim: int) -> np.ndarray:
+    """Per-fragment ``values`` placed into an (L, H, W[, dim]) float64 grid (zero where no fragment)."""
+    out = np.zeros(tuple(shape) + ((dim,) if dim else ()), np.float64)
+    out[index] = values
+    return out
+
+
+def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m1, m2, spp: int,
+                      iterations: int) -> np.ndarray:
+    """The layered SVGF (§4.4.1) applied to ``path_trace``'s output: per-fragment demodulated illumination
+    (N, 3) after ``iterations`` à-trous passes (unchanged with 0 passes or no fragment)."""
+    if iterations <= 0 or len(frag.position) == 0:
+        return np.asarray(illum, np.float64)
+    shape = layers.prim.shape
+    grid = lambda vals, dim: scatter_fragments(vals, frag.index, shape, dim)  # noqa: E731
+    var = np.maximum(m2 - m1 * m1, 0.0) / max(int(spp), 1)
+    pix_angle = 2 * math.tan(math.radians(view.fov_deg) / 2) / view.width
+    illum_g = grid(illum, 3)
+    var_g = spatial_variance(illum_g, layers.valid, grid(var, 0))
+    out = svgf_layers(illum_g, var_g, grid(frag.position, 3), grid(frag.normal, 3), layers.valid,
+                      np.where(layers.valid, layers.t, 0.0), pix_angle, iterations=iterations)
+    return out[frag.index].astype(np.float64)
 
 
 def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: float, iterations: int = 5,
