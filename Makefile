@@ -31,6 +31,7 @@ reproduce: $(STAMP)
 	$(VENV)/bin/splitbench reproduce --preset quick --no-report
 	$(VENV)/bin/splitbench reproduce --preset compare --executor processes --workers $(COMPARE_WORKERS) --no-report
 	$(VENV)/bin/splitbench bench visibility_bitmap
+	$(VENV)/bin/splitbench bench quake_drt
 	$(VENV)/bin/splitbench bench rail
 	$(VENV)/bin/splitbench bench layered_pvs
 	$(VENV)/bin/splitbench report

@@ -150,7 +150,10 @@ def test09_compiled_surface_attributes_give_the_bits_of_the_numpy_reference(scen
     ray's plane intersection and barycentric, both normals, textured and flat albedo, emission; and the facing."""
     from suite.core import gbuffer as gb
 
-    scene = load(scene_name)
+    try:
+        scene = load(scene_name)
+    except UserError as exc:
+        pytest.skip(f"scene data not available: {exc}")
     g, o64, d64, hits = gb.trace_primary(scene, make("embree", scene), 0.0, (48, 32))
     idx = np.nonzero(hits.prim >= 0)[0]
     assert 0 < len(idx)
