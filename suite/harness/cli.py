@@ -483,6 +483,8 @@ def cmd_reproduce(args) -> int:
     # What ran, how long the sweep took and where (the README's budgets come from these records).
     record.update({"problems": problems, "executor": ex.name, "scheduler": args.scheduler,
                    "wall_s": time.perf_counter() - start_s, "host_cpus": os.cpu_count(),
+                   # Summed per-run wall time (the sweep's CPU-bound work; divided over the workers in wall_s).
+                   "runs_wall_s": sum(o.get("wall_s", 0.0) for o in outcomes if not o["skipped"]),
                    "done": sum(1 for o in outcomes if not o["error"] and not o["skipped"]),
                    "already_complete": sum(1 for o in outcomes if o["skipped"]),
                    "run_dirs": [Path(o["run_dir"]).name for o in outcomes if o["run_dir"]],

@@ -530,6 +530,8 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     if results.is_complete(run_dir) and not force:
         return {"run_dir": str(run_dir), "skipped": True, "summary": results.load_run(run_dir)["summary"]}
 
+    start_s = time.perf_counter()
+    wall_s = {}
     spec = registry.get(cfg["method"])
     cls = spec.load()
     scene = load_scene(cfg["scene"])
@@ -543,16 +545,19 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
         list(range(min(n_clients, int(cfg["quality_clients"]))))
     keep_frames = saved_frames(q_frames or list(range(cfg["frames"])))
     keep = set(q_frames) | set(keep_frames)
+    wall_s["setup"] = time.perf_counter() - start_s
     main = simulate(cls, scene, tracer, cfg, zero_latency=cfg["net"] == "ideal" and not cfg.get("server_net"),
                     keep=keep, prepared=prepared, desc=f"{cls.name} {cfg['net']}",
                     keep_clients=set(q_clients) | {0})
     # The zero-latency run is the reference for the error that distribution adds; a method without messages
     # or a run on the ideal network would reproduce its own images, so it is skipped then.
     # A method may decide per parameters (a placement, a renderer): an instance attribute overrides the class's.
+    wall_s["simulate"] = time.perf_counter() - start_s - sum(wall_s.values())
     facts = cls(cfg["params"])
     needs_zl = facts.uses_network and (cfg["net"] != "ideal" or cfg.get("server_net"))
     zl = zero_latency_images(cls, scene, tracer, cfg, q_frames, q_clients, prepared, Path(results_root), env) \
         if needs_zl and q_frames and q_clients else None
+    wall_s["zero_latency"] = time.perf_counter() - start_s - sum(wall_s.values())
 
     frames = pd.DataFrame(main.rows)
     for prefix in QUALITY_PREFIXES:
@@ -591,6 +596,7 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
             if m in METRICS:
                 frames.at[r, f"zl_{m}"] = float(v)
 
+    wall_s["quality"] = time.perf_counter() - start_s - sum(wall_s.values())
     timeline = main.timeline
     msgs = [e for e in timeline.events if e.kind == "message"]
     duration_s = max(frames["display_s"].max() - frames["start_s"].min(), 1e-12)
@@ -613,6 +619,10 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
         "rays": int(frames["rays"].sum()), "quality_frames": q_frames, "quality_clients": q_clients,
         "saved_frames": keep_frames, "zero_latency_run": zl is not None,
         "stats": results.summarize_frames(frames, SUMMARY_COLUMNS),
+        # Host wall time of this run by phase (set-up incl. prepare, simulation, the zero-latency run, references
+        # and metrics): what a sweep's budget is made of; measured, so it differs between reruns.
+        "run_wall_s": {**{k: round(v, 3) for k, v in wall_s.items()},
+                       "total": round(time.perf_counter() - start_s, 3)},
     }
     if main.update_rows:
         ups = pd.DataFrame(main.update_rows)
