@@ -47,7 +47,14 @@ def preset_record(results_root: Path) -> dict | None:
 
 
 def device_text(config: dict) -> str:
-    """Backend and device of a run: "embree · CPU x86_64, 2 cores (host)"; a GPU variant names the GPU."""
+    """Where a run's times come from: the backend and device that measured them ("embree · CPU x86_64, 2 cores
+    (host)"; a GPU variant names the GPU), or the work-clock model with its constants (docs/results.md)."""
+    run = config.get("config", {})
+    if run.get("clock") == "work":
+        return (f"work clock (modelled: {run.get('work_ns_per_ray', 50.0):g} ns/ray, "
+                f"{run.get('work_ns_per_pixel', 20.0):g} ns/pixel, {run.get('work_ns_per_tap', 2.0):g} ns/tap, "
+                f"{run.get('work_ns_per_point', 50.0):g} ns/point, "
+                f"{run.get('work_ns_per_codec_byte', 5.0):g} ns/codec byte)")
     backend = config.get("backend", {})
     name = backend.get("name", "?")
     host = config.get("host", {})
@@ -419,7 +426,7 @@ def method_page(name: str, runs: pd.DataFrame, loaded: list[dict], out_dir: Path
                       f"{esc(row['protocol'])} · {esc(row['resolution'])}</h3><p>error vs full GI "
                       f"{row['error_global']:.3g}, vs direct {row['error_direct']:.3g}, vs zero-latency "
                       f"{row['error_zero_latency']:.3g} (rel. MSE); DSSIM vs own reference {row['dssim']:.3g}; "
-                      f"times measured on {esc(row['measured_on'])}.</p>"
+                      f"times: {esc(row['measured_on'])}.</p>"
                       f"<table class='imgs'><tr><th></th>{head}</tr>{''.join(trs)}</table>")
     if not blocks:
         return None
@@ -454,7 +461,7 @@ def sections(runs: pd.DataFrame, loaded: list[dict], results_root: Path, out_dir
                  f"{cells['scene'].nunique()} scenes × network profiles × TCP/UDP at {esc(settings.get('resolution'))}, "
                  f"{esc(settings.get('frames'))} client frames. Quality = rel. MSE against the full-GI path reference, "
                  "noise-corrected (lower is better). Methods that send nothing ran once per scene; that run stands "
-                 f"under every profile. Frame times are measured on {esc(devices)} (simulated network)."
+                 f"under every profile. Frame times: {esc(devices)}; the network is simulated."
                  + (f" Skipped (scene not available on the machine): "
                                            f"{esc(', '.join(skipped))}." if skipped else "") + "</p>")
         detail = "".join(f"<h3>{esc(_scene_short(scene))}</h3>" + table_html(t) for scene, t in tables.items())
@@ -487,7 +494,7 @@ def sections(runs: pd.DataFrame, loaded: list[dict], results_root: Path, out_dir
         out["pareto"] = ("<h2 id='pareto'>Pareto fronts per scene and network</h2><p>Each panel is one network "
                          "profile; dashed: the Pareto front (runs no other run beats on both axes). Any two "
                          "registered metrics can be plotted (<code>suite.harness.metric_registry</code>). Frame "
-                         f"times measured on {esc(devices)}; bandwidth and latency on the simulated network.</p>"
+                         f"times: {esc(devices)}; bandwidth and latency on the simulated network.</p>"
                          + "".join(plots))
         floors = floor_table(cells, loaded)
         verdict = floor_check(cells, gaps)
@@ -542,7 +549,8 @@ def hardware_section(runs: pd.DataFrame) -> str:
     gpu = runs["backend"].astype(str).str.contains("cuda").any()
     note = ("GPU (cuda) runs are listed beside the CPU runs of the same method, scene and resolution."
             if gpu else "No GPU (cuda backend) runs in these results: every time below is a CPU time.")
-    return ("<h2 id='hardware'>Where times were measured</h2><p>Client and server ms are measured wall time of the "
-            "stages on the named backend and device (median over runs); rays and bytes per frame are the "
-            f"hardware-independent work. {note}</p>" + table_html(table))
+    return ("<h2 id='hardware'>Where times were measured</h2><p>Client and server ms are the stages' measured wall "
+            "time on the named backend and device, or, for runs on the work clock, the time its model gives the "
+            "counted work (median over runs); rays and bytes per frame are the hardware-independent work. "
+            f"{note}</p>" + table_html(table))
 

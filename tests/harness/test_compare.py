@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from reports import build as report
+from reports import build as report, compare
 from suite.errors import UserError
 from suite.harness import cli, executor, metric_registry as mr, presets
 
@@ -49,6 +49,8 @@ def test_the_compare_preset_expands_to_the_documented_matrix_and_records_unavail
     for c in configs:
         assert c["resolution"] == [w, h] and c["frames"] == matrix["frames"]
         assert c["reference_spp"] == matrix["reference_spp"] and c["quality_every"] == matrix["quality_every"]
+        # every method on one machine model: the work clock (docs/results.md "The compare preset")
+        assert matrix["clock"] == "work" and c["clock"] == "work"
     assert {c["params"]["work_ms"] for c in configs if c["method"] == "synthetic_sync"} == {60.0}
     assert record["methods"]["synthetic_sync"]["runs"] + record["methods"]["synthetic_async"]["runs"] == len(got)
 
@@ -93,6 +95,14 @@ def test_a_malformed_shared_matrix_is_a_user_error(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- metric registry
+
+def test_times_name_their_source_the_measuring_device_or_the_work_model():
+    host = {"machine": "x86_64", "cpu_count": 2, "node": "vm"}
+    measured = {"config": {"clock": "measured"}, "backend": {"name": "embree"}, "host": host}
+    work = {"config": {"clock": "work", "work_ns_per_ray": 50.0}, "backend": {"name": "embree"}, "host": host}
+    assert compare.device_text(measured) == "embree · CPU x86_64, 2 cores (vm)"
+    assert compare.device_text(work).startswith("work clock (modelled: 50 ns/ray, 20 ns/pixel")
+
 
 def test_every_registered_metric_states_its_direction_description_and_kind():
     assert {"error", "error_global", "error_direct", "error_zero_latency", "error_floor", "frame_ms_p50",
