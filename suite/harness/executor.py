@@ -19,15 +19,12 @@ EXECUTORS = ("serial", "processes", "dask")
 
 def run_one(cfg: dict, results_root: str, force: bool = False) -> dict:
     """Runs one config; failures come back as data so that one broken run does not stop a sweep."""
-    import time
-
     from suite.harness import runner
 
-    start_s = time.perf_counter()
     try:
         out = runner.execute(cfg, results_root, force=force)
         return {"config": cfg, "run_dir": out["run_dir"], "skipped": out["skipped"], "error": None,
-                "wall_s": time.perf_counter() - start_s}
+                "wall_s": out["summary"].get("run_wall_s", {}).get("total", 0.0)}
     except UserError as exc:
         return {"config": cfg, "run_dir": None, "skipped": False, "error": str(exc)}
     except Exception as exc:  # noqa: BLE001 - reported per run, with its traceback tail
