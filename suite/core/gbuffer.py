@@ -70,7 +70,40 @@ def check_resolution(resolution) -> tuple[int, int]:
 
 
 def camera_rays(pose, fov_deg: float, width: int, height: int, dtype=np.float32) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel-centre rays, row-major from the top-left pixel: origins (N,3) and unit directions (N,3)."""
+    """Pixel-centre rays, row-major from the top-left pixel: origins (N,3) and unit directions (N,3).
+
+    One compiled pass (:func:`_camera`) with the bits of :func:`camera_rays_reference` (and of the Dr.Jit
+    ``suite.core.device.gbuffer.camera_rays``)."""
+    forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
+    tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
+    dirs = np.empty((height * width, 3), dtype)
+    _kernels()[4](forward, right, up, tan_x, width / height, int(width), int(height), dirs)
+    origins = np.empty_like(dirs)
+    origins[:] = np.asarray(pose.position, dtype)
+    return origins, dirs
+
+
+def _camera(forward, right, up, tan_x, aspect, width, height, out):
+    """Unit pixel-centre directions, the float64 operations of :func:`camera_rays_reference` in their order (numpy's
+    norm sums the squares as (x + y) + z), then cast to ``out``'s type."""
+    for i in range(height):
+        sy = (np.float64(i) + 0.5) / height
+        py = -(2.0 * sy - 1.0) * tan_x / aspect
+        for j in range(width):
+            sx = (np.float64(j) + 0.5) / width
+            px = (2.0 * sx - 1.0) * tan_x
+            dx = (forward[0] + px * right[0]) + py * up[0]
+            dy = (forward[1] + px * right[1]) + py * up[1]
+            dz = (forward[2] + px * right[2]) + py * up[2]
+            norm = np.sqrt((dx * dx + dy * dy) + dz * dz)
+            k = i * width + j
+            out[k, 0] = dx / norm
+            out[k, 1] = dy / norm
+            out[k, 2] = dz / norm
+
+
+def camera_rays_reference(pose, fov_deg: float, width: int, height: int, dtype=np.float32):
+    """:func:`camera_rays` as whole-array numpy expressions (the reference its compiled pass is tested against)."""
     forward, right, up = pose.basis()
     tan_x = np.tan(np.radians(fov_deg) / 2.0)
     aspect = width / height
@@ -118,45 +151,54 @@ def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 _compiled = None  # the numba versions of the per-hit passes below, compiled on first use
+_hit_geometry_jit = None  # the compiled _hit_geometry, which the compiled passes call (bound before they compile)
+
+
+def _hit_geometry(positions, normals, f0, f1, f2, a, b, c, use_ray, rox, roy, roz, rdx, rdy, rdz):
+    """One hit: float64 position (barycentric, or the ray's intersection with the triangle's plane), unit geometric
+    normal and interpolated shading normal, as 9 floats. Dot products sum as ``np.einsum("ij,ij->i")`` does:
+    (x + z) + y."""
+    t0x, t0y, t0z = np.float64(positions[f0, 0]), np.float64(positions[f0, 1]), np.float64(positions[f0, 2])
+    t1x, t1y, t1z = np.float64(positions[f1, 0]), np.float64(positions[f1, 1]), np.float64(positions[f1, 2])
+    t2x, t2y, t2z = np.float64(positions[f2, 0]), np.float64(positions[f2, 1]), np.float64(positions[f2, 2])
+    e1x, e1y, e1z = t1x - t0x, t1y - t0y, t1z - t0z
+    e2x, e2y, e2z = t2x - t0x, t2y - t0y, t2z - t0z
+    gx, gy, gz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    glen = max(np.sqrt((gx * gx + gy * gy) + gz * gz), 1e-30)
+    gx, gy, gz = gx / glen, gy / glen, gz / glen
+    px = (t0x * a + t1x * b) + t2x * c
+    py = (t0y * a + t1y * b) + t2y * c
+    pz = (t0z * a + t1z * b) + t2z * c
+    if use_ray:
+        denom = (rdx * gx + rdz * gz) + rdy * gy
+        if abs(denom) > 1e-12:
+            t_plane = ((t0x - rox) * gx + (t0z - roz) * gz) + (t0y - roy) * gy
+            t_plane = t_plane / denom
+            px = rox + t_plane * rdx
+            py = roy + t_plane * rdy
+            pz = roz + t_plane * rdz
+    nx = (np.float64(normals[f0, 0]) * a + np.float64(normals[f1, 0]) * b) + np.float64(normals[f2, 0]) * c
+    ny = (np.float64(normals[f0, 1]) * a + np.float64(normals[f1, 1]) * b) + np.float64(normals[f2, 1]) * c
+    nz = (np.float64(normals[f0, 2]) * a + np.float64(normals[f1, 2]) * b) + np.float64(normals[f2, 2]) * c
+    nlen = np.sqrt((nx * nx + ny * ny) + nz * nz)
+    if nlen > 1e-12:
+        nsafe = max(nlen, 1e-30)
+        nx, ny, nz = nx / nsafe, ny / nsafe, nz / nsafe
+    else:
+        nx, ny, nz = gx, gy, gz
+    return px, py, pz, gx, gy, gz, nx, ny, nz
 
 
 def _attributes(positions, normals, faces, w0, w1, w2, ray_o, ray_d, use_ray, p, ng, ns):
-    """Per hit: float64 position (barycentric, or the ray's intersection with the triangle's plane), unit geometric
-    normal and interpolated shading normal. Dot products sum as ``np.einsum("ij,ij->i")`` does: (x + z) + y."""
+    """Per hit of a list: :func:`_hit_geometry` into (N, 3) float64 rows."""
     for i in range(len(w0)):
-        f0, f1, f2 = faces[i, 0], faces[i, 1], faces[i, 2]
-        t0x, t0y, t0z = np.float64(positions[f0, 0]), np.float64(positions[f0, 1]), np.float64(positions[f0, 2])
-        t1x, t1y, t1z = np.float64(positions[f1, 0]), np.float64(positions[f1, 1]), np.float64(positions[f1, 2])
-        t2x, t2y, t2z = np.float64(positions[f2, 0]), np.float64(positions[f2, 1]), np.float64(positions[f2, 2])
-        e1x, e1y, e1z = t1x - t0x, t1y - t0y, t1z - t0z
-        e2x, e2y, e2z = t2x - t0x, t2y - t0y, t2z - t0z
-        gx, gy, gz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
-        glen = max(np.sqrt((gx * gx + gy * gy) + gz * gz), 1e-30)
-        gx, gy, gz = gx / glen, gy / glen, gz / glen
-        a, b, c = w0[i], w1[i], w2[i]
-        px = (t0x * a + t1x * b) + t2x * c
-        py = (t0y * a + t1y * b) + t2y * c
-        pz = (t0z * a + t1z * b) + t2z * c
-        if use_ray:
-            denom = (ray_d[i, 0] * gx + ray_d[i, 2] * gz) + ray_d[i, 1] * gy
-            if abs(denom) > 1e-12:
-                t_plane = ((t0x - ray_o[i, 0]) * gx + (t0z - ray_o[i, 2]) * gz) + (t0y - ray_o[i, 1]) * gy
-                t_plane = t_plane / denom
-                px = ray_o[i, 0] + t_plane * ray_d[i, 0]
-                py = ray_o[i, 1] + t_plane * ray_d[i, 1]
-                pz = ray_o[i, 2] + t_plane * ray_d[i, 2]
-        nx = (np.float64(normals[f0, 0]) * a + np.float64(normals[f1, 0]) * b) + np.float64(normals[f2, 0]) * c
-        ny = (np.float64(normals[f0, 1]) * a + np.float64(normals[f1, 1]) * b) + np.float64(normals[f2, 1]) * c
-        nz = (np.float64(normals[f0, 2]) * a + np.float64(normals[f1, 2]) * b) + np.float64(normals[f2, 2]) * c
-        nlen = np.sqrt((nx * nx + ny * ny) + nz * nz)
-        if nlen > 1e-12:
-            nsafe = max(nlen, 1e-30)
-            nx, ny, nz = nx / nsafe, ny / nsafe, nz / nsafe
-        else:
-            nx, ny, nz = gx, gy, gz
-        p[i, 0], p[i, 1], p[i, 2] = px, py, pz
-        ng[i, 0], ng[i, 1], ng[i, 2] = gx, gy, gz
-        ns[i, 0], ns[i, 1], ns[i, 2] = nx, ny, nz
+        r = _hit_geometry_jit(positions, normals, faces[i, 0], faces[i, 1], faces[i, 2], w0[i], w1[i], w2[i],
+                              use_ray, ray_o[i, 0] if use_ray else 0.0, ray_o[i, 1] if use_ray else 0.0,
+                              ray_o[i, 2] if use_ray else 0.0, ray_d[i, 0] if use_ray else 0.0,
+                              ray_d[i, 1] if use_ray else 0.0, ray_d[i, 2] if use_ray else 0.0)
+        p[i, 0], p[i, 1], p[i, 2] = r[0], r[1], r[2]
+        ng[i, 0], ng[i, 1], ng[i, 2] = r[3], r[4], r[5]
+        ns[i, 0], ns[i, 1], ns[i, 2] = r[6], r[7], r[8]
 
 
 def _facing(ng, ns, dirs, ng_view, ns_view, front):
@@ -173,49 +215,83 @@ def _facing(ng, ns, dirs, ng_view, ns_view, front):
             ns_view[i, k] = -ns[i, k] if back else ns[i, k]
 
 
-def _scatter(dst, idx, src):
-    """``dst[idx] = src`` for (N, 3) rows, cast to ``dst``'s type as numpy's assignment casts."""
-    for i in range(len(idx)):
+def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_material, face_kind, face_object,
+            albedo_table, emission_table, motion_on, prev_xform, prev_cam, prev_basis, tan_x, aspect, width,
+            position, geo, normal, albedo, emission, depth, material, kind, motion):
+    """The whole per-pixel G-buffer in one pass over the pixels (:func:`trace_primary`): for a hit, the attributes of
+    :func:`surface_attributes` (barycentrics ``1 - u - v`` in float32, then float64; the position on the camera
+    ray's plane intersection), the facing of :func:`facing`, constant albedo, front-facing emission, depth,
+    material, kind, and motion (the previous-time point through its object's ``prev_xform`` (3 x 4 rows per
+    object; none when nothing is animated), projected as :func:`project` computes it, plain (x + y) + z dot products as on the device); background
+    values for a miss. Textured albedo is looked up afterwards."""
+    height = prim.shape[0] // width
+    for i in range(prim.shape[0]):
+        f = prim[i]
+        if f < 0:
+            for k in range(3):
+                position[i, k] = 0.0
+                geo[i, k] = 0.0
+                normal[i, k] = 0.0
+                albedo[i, k] = 0.0
+                emission[i, k] = 0.0
+            depth[i] = np.inf
+            material[i] = -1
+            kind[i] = -1
+            motion[i, 0] = 0.0
+            motion[i, 1] = 0.0
+            continue
+        a = np.float64((np.float32(1.0) - u[i]) - v[i])
+        r = _hit_geometry_jit(positions, normals, faces[f, 0], faces[f, 1], faces[f, 2], a, np.float64(u[i]),
+                              np.float64(v[i]), True, cam[0], cam[1], cam[2], d64[i, 0], d64[i, 1], d64[i, 2])
+        px, py, pz, gx, gy, gz = r[0], r[1], r[2], r[3], r[4], r[5]
+        position[i, 0], position[i, 1], position[i, 2] = px, py, pz
+        dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
+        flip = -1.0 if ((gx * dx + gz * dz) + gy * dy) < 0.0 else 1.0
+        vx, vy, vz = -flip * gx, -flip * gy, -flip * gz
+        geo[i, 0], geo[i, 1], geo[i, 2] = vx, vy, vz
+        back = ((r[6] * vx + r[8] * vz) + r[7] * vy) < 0.0
         for k in range(3):
-            dst[idx[i], k] = src[i, k]
-
-
-def _motion(motion, idx, lx, ly, lz, tan_x, aspect, width, height):
-    """``motion[idx] = float32(project(...) - pixel centres)`` of row-major pixel indices ``idx``, from the view-space
-    coordinates ``lx, ly, lz`` of the points (:func:`project`'s expressions in their order)."""
-    for i in range(len(idx)):
-        z = lz[i] if abs(lz[i]) > 1e-12 else 1e-12
-        x = 0.5 * (1.0 + lx[i] / (z * tan_x)) * width
-        y = 0.5 * (1.0 - ly[i] * aspect / (z * tan_x)) * height
-        motion[idx[i], 0] = np.float32(x - (np.float64(idx[i] % width) + 0.5))
-        motion[idx[i], 1] = np.float32(y - (np.float64(idx[i] // width) + 0.5))
-
-
-def _motion_vectors(motion, idx, points, pose, fov_deg: float, width: int, height: int) -> None:
-    """``motion[idx]``: where float64 world ``points`` project in the frame of ``pose`` minus their pixel centres
-    (:func:`project`: its matrix products, then one compiled pass)."""
-    forward, right, up = pose.basis()
-    rel = np.asarray(points, np.float64) - np.asarray(pose.position, np.float64)
-    tan_x = np.tan(np.radians(fov_deg) / 2.0)
-    _kernels()[3](motion, idx, rel @ right, rel @ up, rel @ forward, float(tan_x), width / height, int(width),
-                  int(height))
-
-
-def _scatter_rows(dst, idx, src) -> None:
-    """``dst[idx] = src`` for (N, 3) rows in one compiled pass (numpy's fancy-index assignment of rows is slow)."""
-    _kernels()[2](dst, idx, np.ascontiguousarray(src))
+            normal[i, k] = -r[6 + k] if back else r[6 + k]
+        m = face_material[f]
+        for k in range(3):
+            albedo[i, k] = albedo_table[m, k]
+            emission[i, k] = emission_table[m, k] if flip < 0.0 else np.float32(0.0)
+        depth[i] = t[i]
+        material[i] = m
+        kind[i] = face_kind[f]
+        if motion_on:
+            qx, qy, qz = px, py, pz
+            if prev_xform.shape[0] > 0:  # rigidly animated objects: the point where it was at the previous time
+                o = face_object[f]
+                qx = ((px * prev_xform[o, 0] + py * prev_xform[o, 1]) + pz * prev_xform[o, 2]) + prev_xform[o, 3]
+                qy = ((px * prev_xform[o, 4] + py * prev_xform[o, 5]) + pz * prev_xform[o, 6]) + prev_xform[o, 7]
+                qz = ((px * prev_xform[o, 8] + py * prev_xform[o, 9]) + pz * prev_xform[o, 10]) + prev_xform[o, 11]
+            rx, ry, rz = qx - prev_cam[0], qy - prev_cam[1], qz - prev_cam[2]
+            lx = (rx * prev_basis[1, 0] + ry * prev_basis[1, 1]) + rz * prev_basis[1, 2]
+            ly = (rx * prev_basis[2, 0] + ry * prev_basis[2, 1]) + rz * prev_basis[2, 2]
+            lz = (rx * prev_basis[0, 0] + ry * prev_basis[0, 1]) + rz * prev_basis[0, 2]
+            z = lz if abs(lz) > 1e-12 else 1e-12
+            x = 0.5 * (1.0 + lx / (z * tan_x)) * width
+            y = 0.5 * (1.0 - ly * aspect / (z * tan_x)) * height
+            motion[i, 0] = np.float32(x - (np.float64(i % width) + 0.5))
+            motion[i, 1] = np.float32(y - (np.float64(i // width) + 0.5))
+        else:
+            motion[i, 0] = 0.0
+            motion[i, 1] = 0.0
 
 
 def _kernels():
-    """:func:`_attributes`, :func:`_facing`, :func:`_scatter` and :func:`_motion` compiled (numba, one pass over the hits, compiled on first use):
-    every float64 operation in the order of the numpy expressions of :func:`surface_attributes_reference` and of
-    the Dr.Jit G-buffer, so the three give the same bits."""
-    global _compiled
+    """:func:`_attributes`, :func:`_facing`, :func:`_pixels` and :func:`_camera` compiled (numba, one pass over the hits
+    or pixels, compiled on first use): every float64 operation in the order of the numpy expressions of
+    :func:`surface_attributes_reference` / :func:`camera_rays_reference` and of the Dr.Jit G-buffer, so they give
+    the same bits (motion vectors: the Dr.Jit G-buffer's order)."""
+    global _compiled, _hit_geometry_jit
     if _compiled is None:
         import numba
 
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-        _compiled = (jit(_attributes), jit(_facing), jit(_scatter), jit(_motion))
+        _hit_geometry_jit = jit(_hit_geometry)
+        _compiled = (jit(_attributes), jit(_facing), jit(_pixels), None, jit(_camera))
     return _compiled
 
 
@@ -335,40 +411,33 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
         return dg.to_host_twin(), o64, d64, dg.hits_to_host()
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
+    fov = scene.camera.fov_deg
     # float64 rays give exact surface positions below; the tracers take their float32 rounding.
-    o64, d64 = camera_rays(pose, scene.camera.fov_deg, width, height, dtype=np.float64)
+    o64, d64 = camera_rays(pose, fov, width, height, dtype=np.float64)
     dirs = d64.astype(np.float32)
     hits = tracer.intersect(o64.astype(np.float32), dirs)
     n = width * height
+    position = np.empty((n, 3), np.float64)
+    normal, geo, albedo, emission = (np.empty((n, 3), np.float32) for _ in range(4))
+    depth = np.empty(n, np.float32)
+    material = np.empty(n, np.int32)
+    kind = np.empty(n, np.int8)
+    motion = np.empty((n, 2), np.float32)
+    motion_on = prev_t_s is not None
+    prev_pose = scene.camera.pose_at(prev_t_s if motion_on else t_s)
+    prev_xform = _previous_transforms(scene, t_s, prev_t_s) if motion_on and scene.object_animations \
+        else np.zeros((0, 12))
+    mats = scene.materials
+    _kernels()[2](np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
+                  scene.faces, hits.prim, hits.u, hits.v, hits.t, np.asarray(pose.position, np.float64), d64, dirs,
+                  scene.face_material, scene.face_kind_codes(), scene.face_object,
+                  np.stack([m.albedo for m in mats]).astype(np.float32),
+                  np.stack([m.emission for m in mats]).astype(np.float32), motion_on, prev_xform,
+                  np.asarray(prev_pose.position, np.float64), np.stack(prev_pose.basis()).astype(np.float64),
+                  float(np.tan(np.radians(fov) / 2.0)), width / height, width,
+                  position, geo, normal, albedo, emission, depth, material, kind, motion)
+    _textured_albedo(scene, albedo, material, hits.prim, hits.u, hits.v)
     valid = hits.prim >= 0
-    position = np.zeros((n, 3), np.float64)
-    normal = np.zeros((n, 3), np.float32)
-    geo = np.zeros((n, 3), np.float32)
-    albedo = np.zeros((n, 3), np.float32)
-    emission = np.zeros((n, 3), np.float32)
-    idx = np.nonzero(valid)[0]
-    if len(idx):
-        positions = scene.positions_at(t_s)
-        normals = scene.normals_at(t_s)
-        p, ng, ns, alb, em = surface_attributes(scene, positions, normals, hits.prim[idx], hits.u[idx], hits.v[idx],
-                                                o64[idx], d64[idx])
-        ng_view, ns_view, front_facing = facing(ng, ns, dirs[idx])
-        for dst, src in ((position, p), (geo, ng_view), (normal, ns_view), (albedo, alb)):
-            _scatter_rows(dst, idx, src)
-        # Area emitters emit on the side their normal points to (Mitsuba's `area` is one-sided).
-        emission[idx] = np.where(front_facing[:, None], em, 0.0)
-    motion = np.zeros((n, 2), np.float32)
-    if prev_t_s is not None and len(idx):
-        prev_points = p
-        if scene.object_animations:
-            prev_points = _points_at_previous_time(scene, hits.prim[idx], prev_points, t_s, prev_t_s)
-        _motion_vectors(motion, idx, prev_points, scene.camera.pose_at(prev_t_s), scene.camera.fov_deg, width, height)
-    depth = np.where(valid, hits.t, np.inf).astype(np.float32)
-    material = np.full(n, -1, np.int32)
-    kind = np.full(n, -1, np.int8)
-    if len(idx):
-        material[idx] = scene.face_material[hits.prim[idx]]
-        kind[idx] = scene.face_kind_codes()[hits.prim[idx]]
     hw = (height, width)
     g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
                 albedo=albedo.reshape(*hw, 3), emission=emission.reshape(*hw, 3), depth=depth.reshape(hw),
@@ -378,12 +447,28 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
     return g, o64, d64, hits
 
 
-def _points_at_previous_time(scene, prim, points, t_s, prev_t_s):
-    obj = scene.face_object[prim]
-    out = points.copy()
+def _textured_albedo(scene, albedo, material, prim, u, v) -> None:
+    """``albedo`` of the pixels on textured materials: the texture at the interpolated UVs (barycentrics as
+    :func:`surface_attributes` takes them), as :func:`_materials` looks them up."""
+    for mid, m in enumerate(scene.materials):
+        if m.albedo_texture is None:
+            continue
+        sel = np.nonzero(material == mid)[0]
+        if len(sel) == 0:
+            continue
+        us, vs = u[sel], v[sel]
+        w = np.stack([np.asarray(1.0 - us - vs).astype(np.float64), us.astype(np.float64), vs.astype(np.float64)],
+                     axis=-1)[..., None]
+        uv = (scene.uvs[scene.faces[prim[sel]]].astype(np.float64) * w).sum(axis=1)
+        albedo[sel] = lookup_texture(m.albedo_texture, uv)
+
+
+def _previous_transforms(scene, t_s: float, prev_t_s: float) -> np.ndarray:
+    """(objects, 12) float64: per object, the 3 x 4 rows taking its points at ``t_s`` to where they were at
+    ``prev_t_s`` (identity for static objects)."""
+    n_obj = int(scene.face_object.max()) + 1 if len(scene.face_object) else 1
+    mats = np.tile(np.eye(4)[:3].reshape(1, 12), (n_obj, 1))
     for anim in scene.object_animations:
-        sel = obj == anim.object_id
-        if sel.any():
-            m = anim.transform_at(prev_t_s) @ np.linalg.inv(anim.transform_at(t_s))
-            out[sel] = points[sel] @ m[:3, :3].T + m[:3, 3]
-    return out
+        m = anim.transform_at(prev_t_s) @ np.linalg.inv(anim.transform_at(t_s))
+        mats[anim.object_id] = m[:3].reshape(12)
+    return np.ascontiguousarray(mats, np.float64)

@@ -133,24 +133,78 @@ def test06_gbuffer_carries_material_ids_and_kinds():
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test07_opaque_and_alpha_groups_give_the_answer_of_the_whole_scene_walk(backend):
-    """occluded in groups (whole-scene any-hit, opaque faces, then the walk of the alpha-tested faces only) blocks the
-    same shadow rays as the walk of every blocked ray through the whole scene, on the host and on the device."""
+    """occluded in groups blocks the same shadow rays as the walk of every blocked ray through the whole scene, on the
+    host and on the device, in both orders: opaque faces first with a walk of the open rays through the alpha-tested
+    faces' box (gallery's one grate is compact), and whole scene first with a walk of the rays only alpha-tested faces
+    blocked."""
     from suite.core.scene import load
     from suite.core.trace.bench import shadow_rays
 
     scene = load("gallery")
     o, d, tmax = shadow_rays(scene, (64, 36))
-    grouped, whole = make(backend, scene), make(backend, scene)
+    grouped, whole, spread = make(backend, scene), make(backend, scene), make(backend, scene)
     whole._groups = False  # no sub-scenes: the whole-scene walk
     blocked = grouped.occluded(o, d, 0.0, tmax)
-    assert grouped._groups and 0 < blocked.sum() < len(blocked)
+    assert grouped._groups and grouped._groups[1].opaque_first and 0 < blocked.sum() < len(blocked)
     assert np.array_equal(blocked, whole.occluded(o, d, 0.0, tmax))
     assert grouped.counters["rays_intersect"] < whole.counters["rays_intersect"]  # fewer rays walk
+    spread._alpha_groups()[1].opaque_first = False  # as for alpha-tested faces all over the scene
+    assert np.array_equal(spread.occluded(o, d, 0.0, tmax), blocked)
     dev = getattr(grouped, "device", None)
     if dev is not None:
         args = (dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f), 0.0, dev.to_device(tmax, dev.Float))
-        assert np.array_equal(np.array(dev.occluded(*args), bool), blocked)
-        assert np.array_equal(np.array(whole.device.occluded(*args), bool), blocked)
+        for tracer in (grouped, whole, spread):
+            assert np.array_equal(np.array(tracer.device.occluded(*args), bool), blocked)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test07b_the_box_test_keeps_every_ray_that_meets_an_alpha_tested_face(backend):
+    """The opaque-first order walks only rays whose segment crosses the alpha-tested faces' padded box: every ray the
+    backend finds meeting one of those faces is among them (host and device tests), across random rays, rays along
+    the axes (zero direction components) and segments that end just before or just past the faces."""
+    from suite.core.scene import load
+    from suite.core.trace.base import as_rays, box_candidates
+
+    scene = load("gallery")
+    tracer = make(backend, scene)
+    _, alpha = tracer._alpha_groups()
+    corners = tracer.local_positions(scene.positions)[scene.faces[alpha.faces]].reshape(-1, 3).astype(np.float64)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)  # the faces' own bounds (the box is padded beyond them)
+    rng = np.random.default_rng(5)
+    n = 20000
+    centre, size = 0.5 * (lo + hi), np.maximum(hi - lo, 0.01)
+    o = (centre + (rng.random((n, 3)) - 0.5) * 4.0 * np.maximum(size, 0.5)).astype(np.float32)
+    target = centre + (rng.random((n, 3)) - 0.5) * 1.2 * size  # on the faces, near their edges and beyond
+    d = target - o
+    d[: n // 10, rng.integers(0, 3)] = 0.0  # some directions with a zero component
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    length = (np.linalg.norm(target - o, axis=1) * rng.uniform(0.98, 1.02, n)).astype(np.float32)
+    world_o = (o.astype(np.float64) + tracer.shift).astype(np.float32)
+    ro, rd, _, rlen = as_rays(world_o, d, 0.0, length, tracer.shift, tracer.soa_origins)
+    meets = np.asarray(alpha.occluded(ro, rd, rlen.copy()), bool)
+    cand = np.zeros(n, bool)
+    cand[box_candidates(ro, rd, rlen, alpha.box, tracer.soa_origins)] = True
+    assert meets.sum() > n // 10 and (~cand).sum() > 0
+    assert not (meets & ~cand).any()
+    dev = getattr(tracer, "device", None)
+    if dev is not None:
+        rows = ro.T if tracer.soa_origins else ro
+        on_dev = np.array(dev.crosses_box(dev.to_device(rows, dev.Point3f), dev.to_device(rd, dev.Vector3f),
+                                          dev.to_device(rlen, dev.Float), alpha.box), bool)
+        assert not (meets & ~on_dev).any()
+
+
+def test07c_gathered_rays_are_the_rows_of_fancy_indexing():
+    from suite.core.trace.base import gather_rays
+
+    rng = np.random.default_rng(2)
+    o, d, length = rng.random((3, 50)).astype(np.float32), rng.random((50, 3)).astype(np.float32), \
+        rng.random(50).astype(np.float32)
+    idx = np.array([3, 0, 49, 7, 7])
+    go, gd, gl = gather_rays(o, d, length, idx, soa=True)
+    assert np.array_equal(go, o[:, idx]) and np.array_equal(gd, d[idx]) and np.array_equal(gl, length[idx])
+    go, _, _ = gather_rays(np.ascontiguousarray(o.T), d, length, idx, soa=False)
+    assert np.array_equal(go, o.T[idx])
 
 
 def test08_the_compiled_alpha_test_gives_the_bits_of_the_numpy_reference():

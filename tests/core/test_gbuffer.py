@@ -83,3 +83,64 @@ def test05_motion_vectors_point_to_the_same_surface_in_the_previous_frame():
 def test06_bad_resolution_is_a_user_error(room_scene):
     with pytest.raises(UserError, match="0x0"):
         render_gbuffer(room_scene, make("embree", room_scene), 0.0, (0, 0))
+
+
+@pytest.mark.parametrize("size", [(40, 24), (37, 19), (1, 1)])
+def test07_compiled_camera_rays_give_the_bits_of_the_numpy_reference(size):
+    from suite.core.gbuffer import camera_rays_reference
+
+    scene = load("living_room")
+    pose = scene.camera.pose_at(0.8)
+    for dtype in (np.float64, np.float32):
+        o, d = camera_rays(pose, scene.camera.fov_deg, *size, dtype=dtype)
+        ref_o, ref_d = camera_rays_reference(pose, scene.camera.fov_deg, *size, dtype=dtype)
+        assert o.dtype == d.dtype == np.dtype(dtype)
+        assert np.array_equal(o, ref_o) and np.array_equal(d, ref_d)
+
+
+@pytest.mark.parametrize("name", ["gallery", "arena"])
+def test08_the_one_pass_gbuffer_gives_the_bits_of_the_numpy_composition(name):
+    """trace_primary's per-pixel pass against whole-array numpy: surface_attributes_reference, normals turned toward
+    the camera, front-facing emission, the albedo textures (gallery), and motion vectors of a moving camera and
+    rigidly animated objects (arena) through project()."""
+    from suite.core.gbuffer import camera_rays_reference, surface_attributes_reference, trace_primary
+
+    scene = load(name)
+    tracer = make("embree", scene)
+    t = 2.0  # arena's platform is in view and moving
+    prev = t - 1.0 / 30.0
+    w, h = 64, 36
+    g, _, _, hits = trace_primary(scene, tracer, t, (w, h), prev, device=False)
+    o64, d64 = camera_rays_reference(scene.camera.pose_at(t), scene.camera.fov_deg, w, h, dtype=np.float64)
+    dirs = d64.astype(np.float32)
+    idx = np.nonzero(hits.prim >= 0)[0]
+    assert len(idx) > 0
+    p, ng, ns, alb, em = surface_attributes_reference(scene, scene.positions_at(t), scene.normals_at(t),
+                                                      hits.prim[idx], hits.u[idx], hits.v[idx], o64[idx], d64[idx])
+    flip = np.where(np.einsum("ij,ij->i", ng, dirs[idx].astype(np.float64)) < 0.0, -1.0, 1.0)[:, None]
+    ng_view = -flip * ng
+    ns_view = np.where(np.einsum("ij,ij->i", ns, ng_view)[:, None] < 0.0, -ns, ns)
+    flat = lambda a: a.reshape(w * h, *a.shape[2:])  # noqa: E731
+    assert np.array_equal(flat(g.position)[idx], p)
+    assert np.array_equal(flat(g.geo_normal)[idx], ng_view.astype(np.float32))
+    assert np.array_equal(flat(g.normal)[idx], ns_view.astype(np.float32))
+    assert np.array_equal(flat(g.albedo)[idx], alb)
+    assert np.array_equal(flat(g.emission)[idx], np.where(flip < 0.0, em, 0.0).astype(np.float32))
+    assert np.array_equal(flat(g.depth)[idx], hits.t[idx])
+    assert np.array_equal(flat(g.material)[idx], scene.face_material[hits.prim[idx]])
+    miss = np.nonzero(hits.prim < 0)[0]
+    assert np.isinf(flat(g.depth)[miss]).all() and (flat(g.material)[miss] == -1).all()
+    assert not flat(g.position)[miss].any() and not flat(g.motion)[miss].any()
+    # motion: where each point was at the previous time, projected into the previous frame, minus the pixel centre
+    points = p.copy()
+    obj = scene.face_object[hits.prim[idx]]
+    moved = False
+    for anim in scene.object_animations:
+        sel = obj == anim.object_id
+        m = anim.transform_at(prev) @ np.linalg.inv(anim.transform_at(t))
+        moved |= bool(sel.any()) and not np.allclose(m, np.eye(4))
+        points[sel] = p[sel] @ m[:3, :3].T + m[:3, 3]
+    xy, _ = project(points, scene.camera.pose_at(prev), scene.camera.fov_deg, w, h)
+    centres = np.stack([idx % w + 0.5, idx // w + 0.5], axis=-1)
+    np.testing.assert_allclose(flat(g.motion)[idx], xy - centres, atol=1e-4)
+    assert moved == (name == "arena")

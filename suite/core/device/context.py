@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from suite.core.trace.alpha import ALPHA_STEP_ULPS, MAX_ALPHA_LAYERS
-from suite.core.trace.base import MAX_RAY_LENGTH
+from suite.core.trace.base import ALPHA_BOX_PAD, MAX_RAY_LENGTH
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 TWO_M23 = 1.1920928955078125e-07  # 2**-23: a float32 ULP at exponent 0
@@ -225,8 +225,10 @@ class Device:
 
     def occluded_rays(self, o_local, d, length, active=True):
         """Shadow-ray query of tracing-frame rays: ``(blocked, closest_traced)``, lazily. With alpha-tested materials,
-        as the host's :meth:`~suite.core.trace.base.Tracer._occluded_split`: an any-hit query against the whole
-        scene, one against the opaque faces for the rays it found blocked, and the rest walk the alpha-tested faces (closest hit, alpha test, re-trace past
+        in the host's order (:meth:`~suite.core.trace.base.Tracer._occluded_split`): compact alpha-tested faces, an
+        any-hit query against the opaque faces and a walk of the open rays that cross the alpha-tested faces' box;
+        otherwise an any-hit query against the whole scene, one against the opaque faces for the rays it found
+        blocked, and the rest walk. Walks run through the alpha-tested faces (closest hit, alpha test, re-trace past
         transparent texels; :meth:`_skip_transparent`); ``closest_traced`` counts those closest-hit queries per lane
         (None without alpha)."""
         tracer = self.tracer
@@ -241,9 +243,17 @@ class Device:
         opaque, alpha = groups
         dr = self.dr
         ray = self.ray(o_local, d, length)
-        hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
         if alpha.mscene is None:  # no face uses the alpha-tested materials
+            hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
             return hit, dr.zeros(self.UInt32, dr.width(d))
+        if alpha.opaque_first:
+            by_opaque = dr.zeros(self.Bool, dr.width(d)) if opaque.mscene is None else \
+                opaque.mscene.ray_test(ray, coherent=False, active=active) & active
+            walk = active & ~by_opaque & self.crosses_box(o_local, d, length, alpha.box)
+            t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
+            _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
+            return by_opaque | (walk & (prim >= 0)), traced
+        hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
         if opaque.mscene is None:
             by_opaque = dr.zeros(self.Bool, dr.width(d))
         else:
@@ -252,6 +262,25 @@ class Device:
         t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
         _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
         return by_opaque | (walk & (prim >= 0)), traced
+
+    def crosses_box(self, o_local, d, length, box):
+        """Bool: the segments o + t d, 0 <= t <= length (padded), cross ``box`` ((2, 3) float64 [lo, hi], padded): the
+        slab test of :func:`suite.core.trace.base.box_candidates` in float32 with reciprocal directions (a filter
+        only: the box's padding is far above float32 rounding, so no segment that meets a face inside is lost)."""
+        dr, F = self.dr, self.Float
+        t0 = dr.zeros(F, dr.width(d))
+        t1 = F(length) * (1.0 + ALPHA_BOX_PAD) + 1e-6
+        ok = self.Bool(True)
+        for c in range(3):
+            oc, dc = F(o_local[c]), F(d[c])
+            lo, hi = float(box[0][c]), float(box[1][c])
+            flat = dc == 0.0
+            inv = dr.rcp(dr.select(flat, 1.0, dc))
+            a, b = (lo - oc) * inv, (hi - oc) * inv
+            t0 = dr.select(flat, t0, dr.maximum(t0, dr.minimum(a, b)))
+            t1 = dr.select(flat, t1, dr.minimum(t1, dr.maximum(a, b)))
+            ok = ok & (~flat | ((oc >= lo) & (oc <= hi)))
+        return ok & (t0 <= t1)
 
     # ------------------------------------------------------------------------------------------ public, evaluated
     def _rays_in_frame(self, o, d, tmin, tmax):
@@ -284,7 +313,7 @@ class Device:
         self.eval(blocked) if traced is None else self.eval(blocked, traced)
         self.tracer.counters["rays_occluded"] += n
         if traced is not None:
-            self.tracer.counters["rays_intersect"] += self.sum_u32(traced)
+            self.tracer.counters["rays_intersect"] += self.sum_u32(traced, MAX_ALPHA_LAYERS + 1)
         return blocked
 
     def intersect(self, o, d, tmin=0.0, tmax=np.inf):
@@ -296,13 +325,20 @@ class Device:
             t = t + tmin_f
         self.eval(t, prim, u, v) if traced is None else self.eval(t, prim, u, v, traced)
         n = dr.width(d)
-        self.tracer.counters["rays_intersect"] += n if traced is None else self.sum_u32(traced)
+        self.tracer.counters["rays_intersect"] += n if traced is None else self.sum_u32(traced, MAX_ALPHA_LAYERS + 1)
         return DeviceHits(t, prim, u, v)
 
-    def sum_u32(self, counts) -> int:
-        """Sum of a per-lane UInt32 counter (a reduction; a few bytes come back to the host)."""
+    def sum_u32(self, counts, bound: int | None = None) -> int:
+        """Sum of a per-lane UInt32 counter (a reduction; a few bytes come back to the host). ``bound``: an upper bound
+        of every lane's value; where lanes x bound stays below 2**32 the sum runs in UInt32 (several times faster than
+        through Float64, which is exact to 2**53 and serves otherwise)."""
         dr = self.dr
-        return int(dr.sum(self.Float64(counts))[0]) if dr.width(counts) else 0
+        n = dr.width(counts)
+        if n == 0:
+            return 0
+        if bound is not None and n * int(bound) < 2 ** 32:
+            return int(dr.sum(counts)[0])
+        return int(dr.sum(self.Float64(counts))[0])
 
     # raw backend entry points on device-resident rays (the benchmarks' baseline)
     def raw_ray(self, o_local, d, length):

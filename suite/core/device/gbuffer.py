@@ -4,8 +4,8 @@
 kernel and returns a :class:`DeviceGBuffer` whose fields are Dr.Jit arrays on the tracer's device. It computes
 what :func:`suite.core.gbuffer.render_gbuffer` computes on the host, operation for operation in the same precision
 (float64 camera rays, the float64 ray/plane intersection for positions, float64 barycentric interpolation, the
-same texture filter), so on ``llvm_ad_rgb`` the rays, primitive ids and positions are the host path's bit for bit
-(tests); only the motion vectors' projection may differ in the last bits (BLAS sums in another order).
+same texture filter, the same order of sums in the motion vectors' projection), so on ``llvm_ad_rgb`` the rays,
+primitive ids and positions are the host path's bit for bit (tests).
 
 Positions stay float64 on the device (Dr.Jit has float64 on both backends): shadow rays leave from
 ``offset_ray_origin`` of them, rounded to float32 only in the scene-centred tracing frame, exactly as on the host
@@ -309,18 +309,15 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
 
 
 def _motion(dev, scene, tables, position, prim, valid, row, col, t_s, prev_t_s, width, height):
-    """Previous-frame pixel position minus the current one (:func:`suite.core.gbuffer._points_at_previous_time` and
-    :func:`suite.core.gbuffer.project` on the device)."""
+    """Previous-frame pixel position minus the current one (the motion of :func:`suite.core.gbuffer.trace_primary` on
+    the device, operation for operation)."""
+    from suite.core.gbuffer import _previous_transforms
+
     dr, F64, I = dev.dr, dev.Float64, dev.Int32
     op = lambda x: dev.opaque(F64, float(x))  # noqa: E731
     prev = position
     if scene.object_animations:
-        n_obj = int(scene.face_object.max()) + 1
-        mats = np.tile(np.eye(4)[:3].reshape(1, 12), (n_obj, 1))
-        for anim in scene.object_animations:
-            m = anim.transform_at(prev_t_s) @ np.linalg.inv(anim.transform_at(t_s))
-            mats[anim.object_id] = m[:3].reshape(12)
-        table = dev.to_device(np.ascontiguousarray(mats, np.float64).reshape(-1), F64)
+        table = dev.to_device(_previous_transforms(scene, t_s, prev_t_s).reshape(-1), F64)
         obj = dr.gather(I, tables.face_object, dr.maximum(prim, 0), valid)
         base = dev.UInt32(dr.maximum(obj, 0)) * 12
         r = [dr.gather(F64, table, base + k, valid) for k in range(12)]

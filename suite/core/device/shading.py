@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from suite.core.shading import INV_PI, SHADOW_TMAX_SCALE, AreaLights, compose_direct
+from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
 
 @dataclass
@@ -232,10 +233,10 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
             dr.scatter(data, word, pixel * words + k)
     out = word if words == 1 else data
     dev.eval(out, count, *([extra] if alpha else []))
-    rays = dev.sum_u32(count)
+    rays = dev.sum_u32(count, n_lights)
     dev.tracer.counters["rays_occluded"] += rays
     if alpha:
-        dev.tracer.counters["rays_intersect"] += dev.sum_u32(extra)
+        dev.tracer.counters["rays_intersect"] += dev.sum_u32(extra, n_lights * (MAX_ALPHA_LAYERS + 1))
     return DeviceVisibility(dev, g.width, g.height, n_lights, 4 * words, out, rays)
 
 
