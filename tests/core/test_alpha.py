@@ -133,27 +133,24 @@ def test06_gbuffer_carries_material_ids_and_kinds():
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test07_opaque_and_alpha_groups_give_the_answer_of_the_whole_scene_walk(backend):
-    """occluded in groups blocks the same shadow rays as the walk of every blocked ray through the whole scene, on the
-    host and on the device, in both orders: opaque faces first with a walk of the open rays through the alpha-tested
-    faces' box (gallery's one grate is compact), and whole scene first with a walk of the rays only alpha-tested faces
-    blocked."""
+    """occluded in groups (an any-hit query against the opaque faces, then the walk of the open rays crossing the
+    alpha-tested faces' box) blocks the same shadow rays as the walk of every blocked ray through the whole scene, on
+    the host and on the device."""
     from suite.core.scene import load
     from suite.core.trace.bench import shadow_rays
 
     scene = load("gallery")
     o, d, tmax = shadow_rays(scene, (64, 36))
-    grouped, whole, spread = make(backend, scene), make(backend, scene), make(backend, scene)
+    grouped, whole = make(backend, scene), make(backend, scene)
     whole._groups = False  # no sub-scenes: the whole-scene walk
     blocked = grouped.occluded(o, d, 0.0, tmax)
-    assert grouped._groups and grouped._groups[1].opaque_first and 0 < blocked.sum() < len(blocked)
+    assert grouped._groups and 0 < blocked.sum() < len(blocked)
     assert np.array_equal(blocked, whole.occluded(o, d, 0.0, tmax))
     assert grouped.counters["rays_intersect"] < whole.counters["rays_intersect"]  # fewer rays walk
-    spread._alpha_groups()[1].opaque_first = False  # as for alpha-tested faces all over the scene
-    assert np.array_equal(spread.occluded(o, d, 0.0, tmax), blocked)
     dev = getattr(grouped, "device", None)
     if dev is not None:
         args = (dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f), 0.0, dev.to_device(tmax, dev.Float))
-        for tracer in (grouped, whole, spread):
+        for tracer in (grouped, whole):
             assert np.array_equal(np.array(tracer.device.occluded(*args), bool), blocked)
 
 
@@ -224,3 +221,26 @@ def test08_the_compiled_alpha_test_gives_the_bits_of_the_numpy_reference():
         for uu, vv in ((u, v), (u.astype(np.float64) / 3.0, v)):
             out = test.transparent(prim, uu, vv)
             assert np.array_equal(out, test.transparent_reference(prim, uu, vv)) and 0 < out.sum() < n
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test07d_the_box_test_on_axis_parallel_rays_and_segment_ends(backend):
+    """Rays with zero direction components inside, on and outside a slab, and segments that stop short of the box, end
+    in it or pass through it: the host test and, on a device, its twin."""
+    from suite.core.trace.base import box_candidates
+
+    box = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]])  # a flat box: the z slab has zero width
+    o = np.array([[-1, 0.5, 0], [-1, 0.5, 1e-3], [-1, 1.0, 0], [0.5, 0.5, 2], [0.5, 0.5, 2], [0.5, 0.5, 2],
+                  [2, 2, 2]], np.float32)
+    d = np.array([[1, 0, 0], [1, 0, 0], [1, 0, 0], [0, 0, -1], [0, 0, -1], [0, 0, -1], [0, 0, -1]], np.float32)
+    length = np.array([5, 5, 5, 1.5, 2.0, 9.0, 9.0], np.float32)
+    got = set(box_candidates(o, d, length, box, soa=False).tolist())
+    # in the plane / off it / on the box's edge; stops short / ends on the box / passes through / misses it
+    assert got == {0, 2, 4, 5}
+    assert set(box_candidates(np.ascontiguousarray(o.T), d, length, box, soa=True).tolist()) == got
+    assert set(box_candidates(o, d, length, box, soa=False, blocked=np.arange(7) == 4).tolist()) == got - {4}
+    dev = getattr(make(backend, screen_scene()), "device", None)
+    if dev is not None:
+        on_dev = np.array(dev.crosses_box(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f),
+                                          dev.to_device(length, dev.Float), box), bool)
+        assert set(np.flatnonzero(on_dev).tolist()) == got

@@ -225,12 +225,10 @@ class Device:
 
     def occluded_rays(self, o_local, d, length, active=True):
         """Shadow-ray query of tracing-frame rays: ``(blocked, closest_traced)``, lazily. With alpha-tested materials,
-        in the host's order (:meth:`~suite.core.trace.base.Tracer._occluded_split`): compact alpha-tested faces, an
-        any-hit query against the opaque faces and a walk of the open rays that cross the alpha-tested faces' box;
-        otherwise an any-hit query against the whole scene, one against the opaque faces for the rays it found
-        blocked, and the rest walk. Walks run through the alpha-tested faces (closest hit, alpha test, re-trace past
-        transparent texels; :meth:`_skip_transparent`); ``closest_traced`` counts those closest-hit queries per lane
-        (None without alpha)."""
+        as the host's :meth:`~suite.core.trace.base.Tracer._occluded_split`: an any-hit query against the opaque
+        faces, and the open rays that cross the alpha-tested faces' box walk those faces (closest hit, alpha test,
+        re-trace past transparent texels; :meth:`_skip_transparent`); ``closest_traced`` counts those closest-hit
+        queries per lane (None without alpha)."""
         tracer = self.tracer
         if tracer._alpha is None:
             blocked = tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
@@ -246,19 +244,9 @@ class Device:
         if alpha.mscene is None:  # no face uses the alpha-tested materials
             hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
             return hit, dr.zeros(self.UInt32, dr.width(d))
-        if alpha.opaque_first:
-            by_opaque = dr.zeros(self.Bool, dr.width(d)) if opaque.mscene is None else \
-                opaque.mscene.ray_test(ray, coherent=False, active=active) & active
-            walk = active & ~by_opaque & self.crosses_box(o_local, d, length, alpha.box)
-            t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
-            _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
-            return by_opaque | (walk & (prim >= 0)), traced
-        hit = tracer.query_scene.ray_test(ray, coherent=False, active=active) & active
-        if opaque.mscene is None:
-            by_opaque = dr.zeros(self.Bool, dr.width(d))
-        else:
-            by_opaque = opaque.mscene.ray_test(ray, coherent=False, active=hit) & hit
-        walk = hit & ~by_opaque
+        by_opaque = dr.zeros(self.Bool, dr.width(d)) if opaque.mscene is None else \
+            opaque.mscene.ray_test(ray, coherent=False, active=active) & active
+        walk = active & ~by_opaque & self.crosses_box(o_local, d, length, alpha.box)
         t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
         _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
         return by_opaque | (walk & (prim >= 0)), traced

@@ -17,14 +17,10 @@ carry their own rounding.
 
 A tracer reuses its ray buffers from query to query, so one tracer serves one thread at a time.
 
-Alpha-tested shadow rays: a backend that can build sub-scenes (``_subscene``) answers ``occluded`` in two groups
-(:meth:`Tracer._occluded_split`), the opaque faces and the alpha-tested ones. Where the alpha-tested faces are
-compact (their bounding box is small against the scene's), the any-hit query runs against the opaque faces, and only the open rays
-whose segment crosses the alpha-tested faces' box walk those faces (closest hit, alpha test, re-trace). Otherwise the
-any-hit query runs against the whole scene, then, for the rays it found blocked, one against the opaque faces, and
-only the rays blocked by alpha-tested faces alone walk. Both orders give the same answer. ``rays_occluded`` counts
-shadow rays (a second any-hit query refines the answer for a ray already counted), ``rays_intersect`` every
-closest-hit query of the walk.
+Alpha-tested shadow rays: a backend that can build sub-scenes (``_subscene``) answers ``occluded`` from two of them
+(:meth:`Tracer._occluded_split`): the any-hit query runs against the opaque faces, and only the open rays whose
+segment crosses the alpha-tested faces' bounding box walk those faces (closest hit, alpha test, re-trace).
+``rays_occluded`` counts shadow rays, ``rays_intersect`` every closest-hit query of the walk.
 
 Animated scenes: ``update(t_s)`` moves the scene's rigidly animated objects; backends keep static and moving
 geometry apart so that an update rebuilds only what moved.
@@ -261,47 +257,25 @@ class Tracer:
             alpha = self._subscene(alpha_faces, local) if opaque is not None else None
             if alpha is not None:
                 alpha.box = alpha_box(local[self.scene.faces[alpha_faces]].reshape(-1, 3), local)
-                alpha.opaque_first = box_area(alpha.box) <= ALPHA_BOX_SHARE * box_area(
-                    np.stack([local.min(axis=0), local.max(axis=0)]).astype(np.float64))
             self._groups = (opaque, alpha) if alpha is not None else False
         return self._groups or None
 
     def _occluded_split(self, o, d, length):
-        """Shadow rays through alpha-tested surfaces, in one of two orders that give the same answer.
-
-        Opaque first, where the alpha-tested faces are compact (their box has at most ``ALPHA_BOX_SHARE`` of the
-        scene box's surface area): an any-hit query against the opaque faces (blocked for good); the open rays that
-        cross the box (a conservative test, :func:`box_candidates`) walk the alpha-tested faces only (closest hit,
-        alpha test, re-trace past transparent texels); a ray that misses the box cannot meet an alpha-tested face.
-        One full query per ray, as the backend's raw query makes, plus the walk.
-
-        Whole scene first, otherwise (alpha-tested faces spread over the scene): an any-hit query against the whole
-        scene (rays it leaves open are open); the rays it finds blocked, an any-hit query against the opaque faces
-        only; the rest, blocked by alpha-tested faces alone, walk those faces.
-
-        Both equal the whole-scene walk of :meth:`_occluded_alpha` except where an opaque face lies within the
-        re-trace step (``ALPHA_STEP_ULPS``) behind a transparent texel or ties with it: there the opaque face blocks
-        the ray."""
+        """Shadow rays through alpha-tested surfaces: an any-hit query against the opaque faces (blocked for good); the
+        open rays whose segment crosses the alpha-tested faces' padded box (a conservative test,
+        :func:`box_candidates`) walk those faces only (closest hit, alpha test, re-trace past transparent texels); a
+        ray that misses the box cannot meet an alpha-tested face. One full query per ray, as the backend's raw query
+        makes, plus the walk. The same answer as the whole-scene walk of :meth:`_occluded_alpha` except where an
+        opaque face lies within the re-trace step (``ALPHA_STEP_ULPS``) behind a transparent texel or ties with it:
+        there the opaque face blocks the ray."""
         groups = self._alpha_groups()
-        if groups is not None:
-            opaque, alpha = groups
-            if alpha.opaque_first:
-                occ = np.array(opaque.occluded(o, d, length.copy()), bool)  # embreex overwrites the lengths
-                walk = box_candidates(o, d, length, alpha.box, self.soa_origins, blocked=occ)
-                if len(walk):
-                    occ[walk] = self._walk_alpha(o, d, length, walk, alpha.closest)
-                return occ
-        occ = np.array(self._occluded(o, d, length.copy()), bool)  # embreex overwrites the lengths it is given
         if groups is None:
-            return self._occluded_alpha(o, d, length, occ)
-        idx = np.nonzero(occ)[0]
-        if len(idx) == 0:
-            return occ
-        o_sub, d_sub, len_sub = self._rows(o, d, length, idx)
-        by_opaque = np.asarray(opaque.occluded(o_sub, d_sub, len_sub.copy()), bool)
-        rest = np.nonzero(~by_opaque)[0]
-        if len(rest):
-            occ[idx[rest]] = self._walk_alpha(o_sub, d_sub, len_sub, rest, alpha.closest)
+            return self._occluded_alpha(o, d, length, np.array(self._occluded(o, d, length.copy()), bool))
+        opaque, alpha = groups
+        occ = np.array(opaque.occluded(o, d, length.copy()), bool)  # embreex overwrites the lengths it is given
+        walk = box_candidates(o, d, length, alpha.box, self.soa_origins, blocked=occ)
+        if len(walk):
+            occ[walk] = self._walk_alpha(o, d, length, walk, alpha.closest)
         return occ
 
     def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf) -> np.ndarray:
@@ -369,11 +343,6 @@ def _normalize_misses(t, prim, u, v) -> None:
     _normalize_misses_kernel(t, prim, u, v)
 
 
-# The opaque-first order of shadow rays (:meth:`Tracer._occluded_split`) is taken when the alpha-tested faces' box has
-# at most this share of the scene box's surface area: the share of random lines through the scene that cross it
-# (Cauchy's formula for convex bodies). Then the walk of the open rays through the box costs less than the second
-# any-hit query the whole-scene-first order makes for every blocked ray.
-ALPHA_BOX_SHARE = 0.25
 # Padding of the alpha-tested faces' box, relative to the scene's extent, and of the ray lengths in the box test:
 # far above float32 rounding of hit points and distances, so a ray the backend finds hitting such a face always
 # crosses the box.
@@ -390,45 +359,31 @@ def alpha_box(points: np.ndarray, all_points: np.ndarray):
     return np.stack([points.min(axis=0).astype(np.float64) - pad, points.max(axis=0).astype(np.float64) + pad])
 
 
-def box_area(box) -> float:
-    """Surface area of a (2, 3) [lo, hi] box (0 for an empty one)."""
-    e = np.maximum(np.asarray(box[1], np.float64) - box[0], 0.0)
-    return float(2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0]))
-
-
 _box_kernels = None
 
 
-def _box_candidates(o, d, length, lo, hi, soa, blocked, step, out):
-    """Writes to ``out`` the indices i (every ``step``-th ray; rays with ``blocked[i]`` skipped where ``blocked`` is not
-    empty) whose segments o + t d, 0 <= t <= length (padded), cross the box [lo, hi] (float32 ``lo``, ``hi``); returns
-    their count. A slab test in float32 with reciprocal directions: a filter only, whose rounding (a few float32
-    ULPs of the distances) lies far inside the box's padding."""
-    k = 0
+def _box_mask(o, d, length, lo, hi, soa, blocked, out):
+    """``out[i]``: ray i is not ``blocked`` (where ``blocked`` is not empty) and its segment o + t d, 0 <= t <= length
+    (padded), crosses the box [lo, hi] (float32 ``lo``, ``hi``). A slab test in float32 with reciprocal directions:
+    a filter only, whose rounding (a few float32 ULPs of the distances) lies far inside the box's padding. A zero
+    direction component keeps the segment in its slab or out of it."""
     skip = blocked.shape[0] > 0
-    for i in range(0, d.shape[0], step):
-        if skip and blocked[i]:
-            continue
+    for i in range(d.shape[0]):
         t0 = np.float32(0.0)
         t1 = length[i] * np.float32(1.0 + ALPHA_BOX_PAD) + np.float32(1e-6)
-        crosses = True
+        ok = True
         for c in range(3):
             oc = o[c, i] if soa else o[i, c]
             dc = d[i, c]
             if dc == 0.0:
-                if oc < lo[c] or oc > hi[c]:
-                    crosses = False
-                    break
+                ok = ok and lo[c] <= oc <= hi[c]
                 continue
             inv = np.float32(1.0) / dc
             a = (lo[c] - oc) * inv
             b = (hi[c] - oc) * inv
             t0 = max(t0, min(a, b))
             t1 = min(t1, max(a, b))
-        if crosses and t0 <= t1:
-            out[k] = i
-            k += 1
-    return k
+        out[i] = ok and t0 <= t1 and not (skip and blocked[i])
 
 
 def _gather_rays(o, d, length, idx, soa, o_out, d_out, len_out):
@@ -450,22 +405,21 @@ def _box_jit():
         import numba
 
         jit = numba.njit(cache=True, nogil=True)
-        _box_kernels = (jit(_box_candidates), jit(_gather_rays))
+        _box_kernels = (jit(_box_mask), jit(_gather_rays))
     return _box_kernels
 
 
 _NO_MASK = np.zeros(0, bool)
 
 
-def box_candidates(o, d, length, box, soa: bool, blocked=None, step: int = 1) -> np.ndarray:
-    """int64 indices of the tracing-frame rays (origins (3, N) if ``soa`` else (N, 3), unit directions (N, 3),
-    lengths) whose segments cross ``box`` ((2, 3) float64, padded): a conservative test, a segment that meets anything
-    inside the box is among them. ``blocked``: rays to leave out; ``step``: test every step-th ray only (a sample)."""
-    n = len(d)
-    out = np.empty(-(-n // step) if n else 0, np.int64)
-    k = _box_jit()[0](o, d, length, np.ascontiguousarray(box[0], np.float32), np.ascontiguousarray(box[1], np.float32),
-                      soa, _NO_MASK if blocked is None else np.ascontiguousarray(blocked, bool), int(step), out)
-    return out[:k]
+def box_candidates(o, d, length, box, soa: bool, blocked=None) -> np.ndarray:
+    """Indices of the tracing-frame rays (origins (3, N) if ``soa`` else (N, 3), unit directions (N, 3), lengths) whose
+    segments cross ``box`` ((2, 3) float64, padded): a conservative test, a segment that meets anything inside the box
+    is among them. ``blocked``: rays to leave out."""
+    mask = np.empty(len(d), bool)
+    _box_jit()[0](o, d, length, np.ascontiguousarray(box[0], np.float32), np.ascontiguousarray(box[1], np.float32),
+                  soa, _NO_MASK if blocked is None else np.ascontiguousarray(blocked, bool), mask)
+    return np.flatnonzero(mask)
 
 
 def gather_rays(o, d, length, idx, soa: bool):
