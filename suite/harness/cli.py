@@ -409,7 +409,8 @@ def _bench_core(argv) -> int:
     p.add_argument("--scene", default="living_room", help="embedded name or XML path, a comma-separated list, or 'all'")
     p.add_argument("--backend", default="all", help="a backend, a comma-separated list, or 'all' (default)")
     p.add_argument("--resolution", default="1920x1080")
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=7,
+                   help="median of this many calls per stage (ratios: interleaved calls of both sides)")
     p.add_argument("--area-samples", type=int, default=4)
     p.add_argument("--out", default="results", help="results root; the figures go to <out>/bench/core.json")
     p.add_argument("--no-store", action="store_true")

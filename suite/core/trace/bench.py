@@ -135,7 +135,7 @@ def _timed(fn, repeats: int):
     return 1e3 * float(np.median(times)), result
 
 
-def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats: int = 3,
+def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats: int = 7,
          area_samples: int = 4) -> dict:
     """Per-stage ms, rays and pixels of one frame on ``backend`` (see the module docstring)."""
     from suite.core import shading
