@@ -31,10 +31,14 @@ finite; a light below the surface's geometric horizon or behind a one-sided emit
 surfaces f = 1/pi and the stage returns *illumination* (radiance / albedo), which is what the denoiser filters;
 for glossy ones it returns radiance (their albedo for demodulation is 1).
 
-Two compiled kernels do the per-ray work: ``_select`` picks the lights of each point (the subsampling above) and
-``_rays`` writes their shadow rays straight into the tracer's frame (origins offset by
-``suite.core.trace.robust.offset_ray_origin``), in chunks of at most ``chunk_rays``; with more than one chunk a
-worker thread generates the next chunk while the backend traces the current one.
+Compiled kernels do the per-ray work. ``_generate`` picks the lights of each point (the subsampling above) and
+writes their shadow rays straight into the tracer's frame (origins offset as
+``suite.core.trace.robust.offset_ray_origin`` does), in one pass without per-sample intermediate arrays (its
+two-pass reference is ``_select`` then ``_rays``); ``_accumulate`` adds the unoccluded rays to their points (the
+sums of ``np.bincount``). Rays go in chunks of at most ``chunk_rays``, growing from a short first chunk (so that
+the backend starts tracing at once); a worker thread adds up the previous chunk and generates the next one while
+the backend traces the current one, so the stage costs little more than its occlusion queries (the ``rays`` part
+of ``splitbench bench quake_drt``).
 """
 from __future__ import annotations
 
@@ -46,11 +50,15 @@ import numpy as np
 
 from methods.quake_drt.rng import DIM_LIGHTS
 from suite.core.shading import SHADOW_TMAX_SCALE
-from suite.core.trace.robust import offset_ray_origin
+from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 MODES = ("uniform", "power", "irradiance")
 INV_PI = 1.0 / np.pi
 DEFAULT_CHUNK_RAYS = 1 << 20
+# Light samples of the first chunk and the largest chunk of the pipelined loop of :func:`shade` (the first is
+# generated while the backend waits; later ones while it traces the previous chunk).
+PIPELINE_FIRST_SAMPLES = 1 << 13
+PIPELINE_MAX_SAMPLES = 1 << 18
 
 
 # The numba twin of rng.pcg_np / rng.uniform_np (same bits; tests/methods/quake_drt/test_rng.py).
@@ -135,10 +143,55 @@ def _find(cdf, a, n, u):
     return lo
 
 
+@numba.njit(inline="always")
+def _choose(i, a, n, k, mode, row_lights, row_cdf, seeds, chosen, l_light, l_weight, l_dim):
+    """The light samples (light, weight, random dimension) of point i, whose table row holds the n lights
+    ``row_lights[a:a + n]``, written to ``l_*``: the subsampling of :func:`_select` for one point (the same
+    operations in the same order). Returns their count."""
+    take = n if (k == 0 or k >= n) else k
+    count = 0
+    if take == n:
+        # Every candidate (thesis Alg. 6.2), weight 1. The light's own index picks its random numbers, so
+        # culled and unculled frames sample each light identically.
+        for j in range(n):
+            light = row_lights[a + j]
+            l_light[count], l_weight[count], l_dim[count] = light, 1.0, DIM_LIGHTS + 4 * light
+            count += 1
+    elif mode == 0:
+        # k distinct lights, uniformly (Floyd's algorithm); each is in the sample with probability k / n.
+        m = 0
+        for j in range(n - k, n):
+            t = int(uniform_nb(seeds[i], DIM_LIGHTS + 4 * m) * (j + 1))
+            if t > j:
+                t = j
+            dup = False
+            for q in range(m):
+                if chosen[q] == t:
+                    dup = True
+                    break
+            chosen[m] = j if dup else t
+            m += 1
+        weight = n / k  # float division: 5 lights subsampled to 2 weigh 2.5
+        for q in range(k):
+            l_light[count], l_weight[count], l_dim[count] = row_lights[a + chosen[q]], weight, DIM_LIGHTS + 4 * q
+            count += 1
+    else:
+        # k independent choices from the row's distribution (power or irradiance, ``row_cdf``).
+        for q in range(k):
+            j = _find(row_cdf, a, n, uniform_nb(seeds[i], DIM_LIGHTS + 4 * q))
+            pj = row_cdf[a + j] - (row_cdf[a + j - 1] if j > 0 else 0.0)
+            if pj <= 0.0:
+                continue
+            l_light[count], l_weight[count], l_dim[count] = row_lights[a + j], 1.0 / (k * pj), DIM_LIGHTS + 4 * q
+            count += 1
+    return count
+
+
 @numba.njit(cache=True, nogil=True)
 def _select(i0, rows, row_off, row_lights, row_cdf, k, mode, seeds, chosen, s_point, s_light, s_weight, s_dim):
     """Light subsampling: the (point, light, weight, random dimension) samples of points i0, i0 + 1, ... until
-    the sample arrays are full. Returns (samples, next point, candidates, selected)."""
+    the sample arrays are full. Returns (samples, next point, candidates, selected). With :func:`_rays`: the two-pass reference of
+    :func:`_generate`."""
     cap = s_point.shape[0]
     count = 0
     cand = 0
@@ -259,6 +312,109 @@ def _rays(n_samples, s_point, s_light, s_weight, s_dim, origin, ng, ns, lambert,
     return count
 
 
+@numba.njit(cache=True, nogil=True)
+def _generate(i0, cap, rows, row_off, row_lights, row_cdf, k, mode, chosen, l_light, l_weight, l_dim, p, ng, ns,
+              lambert, seeds, kind, lpos, lrgb, larea, tri_off, tri_p0, tri_e1, tri_e2, tri_n, tri_cdf, rep_tri, soft,
+              shift, min_d2, tmax_scale, o_out, d_out, len_out, w_out, ray_point):
+    """:func:`_select` and :func:`_rays` in one pass, with the robust origin of each point
+    (:func:`suite.core.trace.robust.offset_ray_origin` along ``ng``, its float64 operations in their order)
+    computed when the point is reached: the shadow rays of points i0, i0 + 1, ... whose light samples (at most
+    ``cap`` of them, before the horizon tests) fit, written straight to the output rows, with no per-sample
+    intermediate arrays. Returns (rays, next point, candidates, selected); the rays and their order are those of
+    the two-pass reference."""
+    count = 0
+    samples = 0
+    cand = 0
+    sel = 0
+    n_pts = rows.shape[0]
+    i = i0
+    while i < n_pts:
+        r = rows[i]
+        a = row_off[r]
+        n = row_off[r + 1] - a
+        take = n if (k == 0 or k >= n) else k
+        if samples + take > cap:
+            if i == i0:
+                raise ValueError("chunk_rays is smaller than one point's light count")
+            break
+        cand += n
+        sel += take
+        samples += take
+        m = _choose(i, a, n, k, mode, row_lights, row_cdf, seeds, chosen, l_light, l_weight, l_dim)
+        # offset_ray_origin: OFFSET_ULPS float32 ULPs of the largest tracing-frame coordinate, at least FLOAT_SCALE.
+        mag = np.float32(max(max(abs(p[i, 0] - shift[0]), abs(p[i, 1] - shift[1])), abs(p[i, 2] - shift[2])))
+        step = max(OFFSET_ULPS * np.float64(np.spacing(mag)), FLOAT_SCALE)
+        ox, oy, oz = p[i, 0] + step * ng[i, 0], p[i, 1] + step * ng[i, 1], p[i, 2] + step * ng[i, 2]
+        for q in range(m):
+            # The body of _rays (kept verbatim, so that the two give the same bits).
+            light = l_light[q]
+            dimbase = l_dim[q]
+            if kind[light] == 0:
+                yx, yy, yz = lpos[light, 0], lpos[light, 1], lpos[light, 2]
+                nyx, nyy, nyz = 0.0, 0.0, 0.0
+            else:
+                a = tri_off[light]
+                if soft:
+                    t = a + _find(tri_cdf, a, tri_off[light + 1] - a, uniform_nb(seeds[i], dimbase + 1))
+                    su = np.sqrt(uniform_nb(seeds[i], dimbase + 2))
+                    b1 = 1.0 - su
+                    b2 = uniform_nb(seeds[i], dimbase + 3) * su
+                else:
+                    t = rep_tri[light]
+                    b1 = 1.0 / 3.0
+                    b2 = 1.0 / 3.0
+                yx = tri_p0[t, 0] + b1 * tri_e1[t, 0] + b2 * tri_e2[t, 0]
+                yy = tri_p0[t, 1] + b1 * tri_e1[t, 1] + b2 * tri_e2[t, 1]
+                yz = tri_p0[t, 2] + b1 * tri_e1[t, 2] + b2 * tri_e2[t, 2]
+                nyx, nyy, nyz = tri_n[t, 0], tri_n[t, 1], tri_n[t, 2]
+            tx, ty, tz = yx - ox, yy - oy, yz - oz
+            d2 = tx * tx + ty * ty + tz * tz
+            dist = np.sqrt(d2)
+            inv = 1.0 / max(dist, 1e-30)
+            dx, dy, dz = tx * inv, ty * inv, tz * inv
+            if dx * ng[i, 0] + dy * ng[i, 1] + dz * ng[i, 2] <= 0.0:
+                continue  # below the geometric horizon: the surface shadows itself
+            cos_x = dx * ns[i, 0] + dy * ns[i, 1] + dz * ns[i, 2]
+            if lambert[i] and cos_x <= 0.0:
+                continue
+            g = l_weight[q] / max(d2, min_d2)
+            if kind[light] != 0:
+                cos_y = -(dx * nyx + dy * nyy + dz * nyz)
+                if cos_y <= 0.0:
+                    continue  # behind the one-sided emitter
+                g *= cos_y * larea[light]
+            if lambert[i]:
+                g *= cos_x * 0.3183098861837907
+            o_out[count, 0] = ox - shift[0]
+            o_out[count, 1] = oy - shift[1]
+            o_out[count, 2] = oz - shift[2]
+            d_out[count, 0], d_out[count, 1], d_out[count, 2] = dx, dy, dz
+            len_out[count] = max(np.float32(dist * tmax_scale), np.float32(0.0))
+            w_out[count, 0] = g * lrgb[light, 0]
+            w_out[count, 1] = g * lrgb[light, 1]
+            w_out[count, 2] = g * lrgb[light, 2]
+            ray_point[count] = i
+            count += 1
+        i += 1
+    return count, i, cand, sel
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(count, occluded, w, ray_point, out):
+    """``out[point] += w`` for every unoccluded ray, in ray order: the sums of ``np.bincount(point, weights)``
+    (which adds in the same order) without compacting the lit rays first. Returns the unoccluded count."""
+    visible = 0
+    for r in range(count):
+        if occluded[r]:
+            continue
+        i = ray_point[r]
+        out[i, 0] += w[r, 0]
+        out[i, 1] += w[r, 1]
+        out[i, 2] += w[r, 2]
+        visible += 1
+    return visible
+
+
 def row_cdf(row_offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(S,) cumulative normalised ``weights`` (one per entry of the rows' light lists) within each row."""
     w = np.maximum(np.asarray(weights, np.float64), 0.0)
@@ -344,36 +500,64 @@ def shade(points: ShadingPoints, lights, table, rows: np.ndarray, k: int, mode: 
     rows = np.ascontiguousarray(rows, np.int64)
     counts = np.diff(table.row_offsets)[rows]
     per_point = counts if k == 0 else np.minimum(counts, k)
-    cap = int(max(1, min(int(per_point.sum()), max(int(chunk_rays), int(per_point.max(initial=1))))))
+    widest = int(per_point.max(initial=1))
+    total = int(per_point.sum())
+    cap = int(max(1, min(total, max(int(chunk_rays), widest))))
+    # Chunks grow from PIPELINE_FIRST_SAMPLES to PIPELINE_MAX_SAMPLES (never above chunk_rays, never below one
+    # point's samples): the backend starts tracing after a short first chunk, and later chunks are large enough
+    # that the per-chunk call overhead vanishes. A point's samples never straddle two chunks, so its sum is
+    # the same whatever the chunking.
+    top = min(cap, max(PIPELINE_MAX_SAMPLES, widest))
+    chunk_caps = [min(top, max(PIPELINE_FIRST_SAMPLES << j, widest)) for j in range(32)]
     shift = np.asarray(getattr(tracer, "shift", np.zeros(3)), np.float64)
-    origin = offset_ray_origin(points.p, points.ng, shift)
     seeds = np.ascontiguousarray(points.seed, np.uint32)
-    geometry = (origin, np.ascontiguousarray(points.ng, np.float64), np.ascontiguousarray(points.ns, np.float64),
-                np.ascontiguousarray(points.lambert, np.bool_), seeds, lights.kind, lights.position, lights.rgb,
-                lights.area, lights.tri_offsets, np.ascontiguousarray(lights.tri_p0), lights.tri_e1, lights.tri_e2,
-                lights.tri_normal, lights.tri_cdf, lights.rep_tri, bool(soft), shift, float(min_distance) ** 2,
-                float(SHADOW_TMAX_SCALE))
+    selection = (rows, table.row_offsets, table.row_lights, row_cdf, int(k), mode_code)
+    geometry = (np.ascontiguousarray(points.p, np.float64), np.ascontiguousarray(points.ng, np.float64),
+                np.ascontiguousarray(points.ns, np.float64), np.ascontiguousarray(points.lambert, np.bool_), seeds,
+                lights.kind, lights.position, lights.rgb, lights.area, lights.tri_offsets,
+                np.ascontiguousarray(lights.tri_p0), lights.tri_e1, lights.tri_e2, lights.tri_normal, lights.tri_cdf,
+                lights.rep_tri, bool(soft), shift, float(min_distance) ** 2, float(SHADOW_TMAX_SCALE))
     glossy = not bool(np.all(points.lambert))
-    many = int(per_point.sum()) > cap
-    slots = [_Buffers(cap, k) for _ in range(2 if many else 1)]
+    slots = [_Buffers(top, max(int(k), widest)) for _ in range(2 if total > chunk_caps[0] else 1)]
 
-    def produce(i, slot):
+    def accumulate(slot):
+        """Adds the unoccluded rays of the chunk ``slot`` holds (traced, not yet added) to ``out``."""
+        count, occ = traced[slot]
+        traced[slot] = None
         b = slots[slot]
-        samples, i_next, cand, sel = _select(i, rows, table.row_offsets, table.row_lights, row_cdf, int(k),
-                                             mode_code, seeds, b.chosen, b.s_point, b.s_light, b.s_weight, b.s_dim)
-        count = _rays(samples, b.s_point, b.s_light, b.s_weight, b.s_dim, *geometry, b.o, b.d, b.length, b.w,
-                      b.ray_point, b.ray_light)
-        return i_next, count, cand, sel
+        if not glossy:
+            return int(_accumulate(count, occ, b.w, b.ray_point, out))
+        lit = np.nonzero(~occ)[0]
+        pt = b.ray_point[lit]
+        w = _apply_glossy_bsdf(scene, points, pt, b.d[lit].astype(np.float64), b.w[lit])
+        for c in range(3):
+            out[:, c] += np.bincount(pt, weights=w[:, c], minlength=n)
+        return int(len(lit))
 
-    # With more than one chunk, a worker generates the next chunk's rays (compiled, GIL released) while the
-    # backend traces the current one's; the two buffer slots alternate. Results do not depend on the timing.
+    def produce(i, slot, chunk):
+        # The chunk this slot held is added first (its buffers are about to be overwritten).
+        visible = accumulate(slot) if traced[slot] is not None else 0
+        b = slots[slot]
+        return visible, *_generate(i, chunk_caps[min(chunk, len(chunk_caps) - 1)], *selection, b.chosen, b.l_light,
+                                   b.l_weight, b.l_dim, *geometry, b.o, b.d, b.length, b.w, b.ray_point)
+
+    # A worker adds up the previous chunk and generates the next one's rays (compiled, GIL released) while the
+    # backend traces the current one's; the two buffer slots alternate. A point's rays all lie in one chunk and
+    # its sum starts from zero, so the order in which chunks are added does not change a bit. (Glossy points
+    # are added on the caller's thread: their BSDF is numpy.)
+    traced = [None] * len(slots)  # per slot: (rays, occluded) of a traced chunk not yet added
     with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(produce, 0, 0)
-        slot = 0
+        pending = pool.submit(produce, 0, 0, 0)
+        slot, chunk = 0, 0
         while True:
-            i_next, count, cand, sel = pending.result()
+            visible, count, i_next, cand, sel = pending.result()
+            stats.visible += visible
+            chunk += 1
             if i_next < n:
-                pending = pool.submit(produce, i_next, 1 - slot)
+                other = 1 - slot
+                if glossy and traced[other] is not None:
+                    stats.visible += accumulate(other)
+                pending = pool.submit(produce, i_next, other, chunk)
             stats.candidates += int(cand)
             stats.selected += int(sel)
             if count:
@@ -381,32 +565,27 @@ def shade(points: ShadingPoints, lights, table, rows: np.ndarray, k: int, mode: 
                 o, d, length = b.o[:count], b.d[:count], b.length[:count]
                 if capture is not None:
                     capture.append((o.copy(), d.copy(), length.copy()))
-                occ = trace_shadow(tracer, o, d, length, skip_faces)
-                lit = np.nonzero(~occ)[0]
+                traced[slot] = (count, trace_shadow(tracer, o, d, length, skip_faces))
                 stats.rays += int(count)
-                stats.visible += int(len(lit))
-                w = b.w[lit]
-                pt = b.ray_point[lit]
-                if glossy:
-                    w = _apply_glossy_bsdf(scene, points, pt, d[lit].astype(np.float64), w)
-                for c in range(3):
-                    out[:, c] += np.bincount(pt, weights=w[:, c], minlength=n)
             if i_next >= n:
                 break
             slot = 1 - slot if len(slots) > 1 else 0
+    for held in range(len(slots)):  # the last chunks
+        if traced[held] is not None:
+            stats.visible += accumulate(held)
     return out, stats
 
 
 class _Buffers:
-    """One slot of ray buffers: the light samples of a chunk and their rays."""
+    """One slot of ray buffers: the light samples of one point and a chunk's rays."""
 
-    def __init__(self, cap: int, k: int):
-        self.chosen = np.empty(max(int(k), 1), np.int64)
-        self.s_point, self.s_light = np.empty(cap, np.int64), np.empty(cap, np.int64)
-        self.s_weight, self.s_dim = np.empty(cap, np.float64), np.empty(cap, np.int64)
+    def __init__(self, cap: int, widest: int):
+        self.chosen = np.empty(max(widest, 1), np.int64)
+        self.l_light, self.l_weight = np.empty(max(widest, 1), np.int64), np.empty(max(widest, 1), np.float64)
+        self.l_dim = np.empty(max(widest, 1), np.int64)
         self.o, self.d = np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32)
         self.length, self.w = np.empty(cap, np.float32), np.empty((cap, 3), np.float64)
-        self.ray_point, self.ray_light = np.empty(cap, np.int32), np.empty(cap, np.int32)
+        self.ray_point = np.empty(cap, np.int32)
 
 
 def _apply_glossy_bsdf(scene, points: ShadingPoints, pt: np.ndarray, wo: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -25,15 +25,23 @@ tracers themselves (``suite.core.trace.alpha``).
 The suite's Quake III loader drops additive faces from the geometry (docs/scenes.md, "additive effect: not
 geometry"), so on the listed maps only ALPHA-blended faces (e.g. oa_ctf2's jump-pad glows, which the scene model
 calls glass) are overlays; ADD blending is exercised by the tests on synthetic scenes.
+
+**Cost.** The shading rays' directions and their surfaces (geometry, texture lookup, facing) are compiled passes
+over the pixels (:func:`camera_rays`, :func:`surface_from_hits`, each with the bits of its numpy reference), and
+the surfaces are computed on a worker thread while the G-buffer's rays are traced, so that the stage costs little
+more than its two closest-hit queries and the G-buffer's own pass (the ``rays`` part of ``splitbench bench
+quake_drt``).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from methods.quake_drt.rng import DIM_JITTER_X, DIM_JITTER_Y, DIM_LENS_U, DIM_LENS_V, uniform_np
-from suite.core.gbuffer import surface_attributes, trace_primary
+from suite.core import gbuffer as _gbuffer
+from suite.core.gbuffer import surface_attributes, texture_table, trace_primary
 from suite.core.trace.base import Hits
 
 OVERLAY_NONE, OVERLAY_ADD, OVERLAY_ALPHA = 0, 1, 2
@@ -95,6 +103,41 @@ def camera_rays(scene, t_s: float, width: int, height: int, seeds: np.ndarray, j
     seeds = np.asarray(seeds, np.uint32).reshape(-1)
     jx = uniform_np(seeds, DIM_JITTER_X) - 0.5 if jitter else np.zeros(len(seeds))
     jy = uniform_np(seeds, DIM_JITTER_Y) - 0.5 if jitter else np.zeros(len(seeds))
+    tan_x = np.tan(np.radians(scene.camera.fov_deg) / 2.0)
+    aspect = width / height
+    origin = np.broadcast_to(np.asarray(pose.position, np.float64), (width * height, 3)).copy()
+    if aperture_m > 0.0:
+        col = np.tile(np.arange(width), height).astype(np.float64)
+        row = np.repeat(np.arange(height), width).astype(np.float64)
+        px = (2.0 * (col + 0.5 + jx) / width - 1.0) * tan_x
+        py = -(2.0 * (row + 0.5 + jy) / height - 1.0) * tan_x / aspect
+        d = forward[None, :] + px[:, None] * right[None, :] + py[:, None] * up[None, :]
+        focus = origin + d * focal_m  # d has unit length along forward: the plane at focal_m ahead
+        r = aperture_m * np.sqrt(uniform_np(seeds, DIM_LENS_U))
+        phi = 2.0 * np.pi * uniform_np(seeds, DIM_LENS_V)
+        origin = origin + (r * np.cos(phi))[:, None] * right + (r * np.sin(phi))[:, None] * up
+        d = focus - origin
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return origin, d
+    # A pinhole (jittered or not): one compiled pass over the pixels, the float64 operations of the numpy
+    # expressions above in their order (tests/methods/quake_drt/test_kernels.py).
+    n = width * height
+    d = np.empty((n, 3))
+    _kernels()[0](np.asarray(forward, np.float64), np.asarray(right, np.float64), np.asarray(up, np.float64),
+                  float(tan_x), aspect, int(width), int(height),
+                  np.ascontiguousarray(np.broadcast_to(jx, (n,)), np.float64),
+                  np.ascontiguousarray(np.broadcast_to(jy, (n,)), np.float64), d)
+    return origin, d
+
+
+def camera_rays_reference(scene, t_s: float, width: int, height: int, seeds: np.ndarray, jitter: bool):
+    """:func:`camera_rays` of a pinhole camera as whole-array numpy expressions (the reference its compiled pass is
+    tested against)."""
+    pose = scene.camera.pose_at(t_s)
+    forward, right, up = pose.basis()
+    seeds = np.asarray(seeds, np.uint32).reshape(-1)
+    jx = uniform_np(seeds, DIM_JITTER_X) - 0.5 if jitter else np.zeros(len(seeds))
+    jy = uniform_np(seeds, DIM_JITTER_Y) - 0.5 if jitter else np.zeros(len(seeds))
     col = np.tile(np.arange(width), height).astype(np.float64)
     row = np.repeat(np.arange(height), width).astype(np.float64)
     tan_x = np.tan(np.radians(scene.camera.fov_deg) / 2.0)
@@ -103,14 +146,25 @@ def camera_rays(scene, t_s: float, width: int, height: int, seeds: np.ndarray, j
     py = -(2.0 * (row + 0.5 + jy) / height - 1.0) * tan_x / aspect
     d = forward[None, :] + px[:, None] * right[None, :] + py[:, None] * up[None, :]
     origin = np.broadcast_to(np.asarray(pose.position, np.float64), d.shape).copy()
-    if aperture_m > 0.0:
-        focus = origin + d * focal_m  # d has unit length along forward: the plane at focal_m ahead
-        r = aperture_m * np.sqrt(uniform_np(seeds, DIM_LENS_U))
-        phi = 2.0 * np.pi * uniform_np(seeds, DIM_LENS_V)
-        origin = origin + (r * np.cos(phi))[:, None] * right + (r * np.sin(phi))[:, None] * up
-        d = focus - origin
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     return origin, d
+
+
+def _camera(forward, right, up, tan_x, aspect, width, height, jx, jy, out):
+    """Unit directions through the pixels offset by (jx, jy): the float64 operations of
+    :func:`camera_rays_reference` in their order (numpy's norm sums the squares as (x + y) + z)."""
+    for i in range(height):
+        for j in range(width):
+            k = i * width + j
+            px = (2.0 * ((np.float64(j) + 0.5) + jx[k]) / width - 1.0) * tan_x
+            py = -(2.0 * ((np.float64(i) + 0.5) + jy[k]) / height - 1.0) * tan_x / aspect
+            dx = (forward[0] + px * right[0]) + py * up[0]
+            dy = (forward[1] + px * right[1]) + py * up[1]
+            dz = (forward[2] + px * right[2]) + py * up[2]
+            norm = np.sqrt((dx * dx + dy * dy) + dz * dz)
+            out[k, 0] = dx / norm
+            out[k, 1] = dy / norm
+            out[k, 2] = dz / norm
 
 
 def walk_past(tracer, o: np.ndarray, d: np.ndarray, tmax, skip_faces: np.ndarray, layers: list | None = None) -> Hits:
@@ -168,6 +222,35 @@ def _attributes(scene, t_s, o, d, prim, u, v):
 
 
 def surface_from_hits(scene, t_s: float, o: np.ndarray, d: np.ndarray, prim, u, v, t) -> Surface:
+    """The shading sample of hits ``(prim, u, v, t)`` of float64 rays ``(o, d)``: position on the ray's plane
+    intersection, raw and viewer-side normals, albedo (textures looked up), front-side emission, material. One
+    compiled pass over the hits (:func:`_surface_pass`) with the bits of :func:`surface_from_hits_reference`
+    (suite.core.gbuffer.surface_attributes and the facing of :func:`_attributes`); scenes whose textures it
+    does not take (channels other than 1 or 3) take the reference."""
+    textures = _texture_table(scene)
+    if textures is None:
+        return surface_from_hits_reference(scene, t_s, o, d, prim, u, v, t)
+    n = len(o)
+    s = Surface(valid=np.empty(n, bool), prim=np.empty(n, np.int64), u=np.empty(n), v=np.empty(n),
+                p=np.empty((n, 3)), ng=np.empty((n, 3)), ns=np.empty((n, 3)), ng_view=np.empty((n, 3)),
+                ns_view=np.empty((n, 3)), albedo=np.empty((n, 3)), emission=np.empty((n, 3)),
+                material=np.empty(n, np.int64), o=np.asarray(o, np.float64), d=np.asarray(d, np.float64),
+                t=np.empty(n), overlay_rgb=np.zeros((n, 3)), overlay_t=np.ones(n))
+    if n == 0:
+        return s
+    albedo_table, emission_table, tex_slot, tex_shape, tex_data = textures
+    _kernels()[1](np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
+                  scene.faces, scene.face_material, albedo_table, emission_table, tex_slot, tex_shape, tex_data,
+                  scene.uvs if scene.uvs is not None else np.zeros((1, 2), np.float32),
+                  np.ascontiguousarray(s.o), np.ascontiguousarray(s.d), np.ascontiguousarray(prim),
+                  np.ascontiguousarray(u), np.ascontiguousarray(v), np.ascontiguousarray(t), s.valid, s.prim, s.u,
+                  s.v, s.t, s.p, s.ng, s.ns, s.ng_view, s.ns_view, s.albedo, s.emission, s.material)
+    return s
+
+
+def surface_from_hits_reference(scene, t_s: float, o: np.ndarray, d: np.ndarray, prim, u, v, t) -> Surface:
+    """:func:`surface_from_hits` through suite.core.gbuffer.surface_attributes and whole-array numpy expressions
+    (the reference its compiled pass is tested against)."""
     n = len(o)
     prim = np.asarray(prim, np.int64)
     valid = prim >= 0
@@ -183,6 +266,118 @@ def surface_from_hits(scene, t_s: float, o: np.ndarray, d: np.ndarray, prim, u, 
         s.albedo[idx], s.emission[idx] = alb, em
         s.material[idx] = scene.face_material[prim[idx]]
     return s
+
+
+def _texture_table(scene):
+    """(albedo per material (M, 3) float32, emission per material (M, 3) float32, then
+    :func:`suite.core.gbuffer.texture_table`: texture slot per material (-1: constant albedo), (slots, 4) int64 rows
+    of height, width, channels and offset, all albedo textures packed flat in one float32 array); None when a
+    texture has other than 1 or 3 channels or values float32 does not hold exactly (then the reference path)."""
+    mats = scene.materials
+    textures = [m.albedo_texture for m in mats if m.albedo_texture is not None]
+    if scene.uvs is None and textures:
+        return None  # textures without coordinates: the reference's error
+    for tex in textures:
+        tex = np.asarray(tex)
+        if tex.ndim != 3 or tex.shape[2] not in (1, 3) or tex.dtype not in (np.float32, np.uint8, np.uint16):
+            return None
+    return (np.stack([m.albedo for m in mats]).astype(np.float32),
+            np.stack([m.emission for m in mats]).astype(np.float32), *texture_table(scene))
+
+
+def _surface_pass(positions, normals, faces, face_material, albedo_table, emission_table, tex_slot, tex_shape,
+                  tex_data, uvs, o, d, prim, u, v, t, valid, prim_out, u_out, v_out, t_out, p, ng, ns, ng_view,
+                  ns_view, albedo, emission, material):
+    """Per hit, the fields of :func:`surface_from_hits_reference`: suite.core.gbuffer's float64 hit geometry
+    (``_hit_geometry``; barycentrics (1 - u) - v in float64, the position on the ray's plane, normals), the bilinear repeating
+    texture lookup of ``lookup_texture`` (rounded to float32 as it returns), and the facing of :func:`_attributes`
+    (np.einsum's dot products sum as (x + z) + y); background values for a miss."""
+    for i in range(prim.shape[0]):
+        f = prim[i]
+        b1, b2 = np.float64(u[i]), np.float64(v[i])
+        u_out[i], v_out[i] = b1, b2
+        if f < 0:
+            valid[i] = False
+            prim_out[i] = -1
+            t_out[i] = np.inf
+            material[i] = -1
+            for k in range(3):
+                p[i, k] = 0.0
+                ng[i, k] = 0.0
+                ns[i, k] = 0.0
+                ng_view[i, k] = 0.0
+                ns_view[i, k] = 0.0
+                albedo[i, k] = 0.0
+                emission[i, k] = 0.0
+            continue
+        valid[i] = True
+        prim_out[i] = f
+        t_out[i] = np.float64(t[i])
+        b0 = (1.0 - b1) - b2
+        f0, f1, f2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        rox, roy, roz = o[i, 0], o[i, 1], o[i, 2]
+        rdx, rdy, rdz = d[i, 0], d[i, 1], d[i, 2]
+        r = _gbuffer._hit_geometry_jit(positions, normals, f0, f1, f2, b0, b1, b2, True, rox, roy, roz, rdx, rdy, rdz)
+        px, py, pz, gx, gy, gz, nx, ny, nz = r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8]
+        p[i, 0], p[i, 1], p[i, 2] = px, py, pz
+        ng[i, 0], ng[i, 1], ng[i, 2] = gx, gy, gz
+        ns[i, 0], ns[i, 1], ns[i, 2] = nx, ny, nz
+        # Facing: sign(ng . d), 0 counted as +1; both normals on the viewer's side.
+        flip = -1.0 if ((gx * rdx + gz * rdz) + gy * rdy) < 0.0 else 1.0
+        vx, vy, vz = -flip * gx, -flip * gy, -flip * gz
+        ng_view[i, 0], ng_view[i, 1], ng_view[i, 2] = vx, vy, vz
+        back = ((nx * vx + nz * vz) + ny * vy) < 0.0
+        ns_view[i, 0] = -nx if back else nx
+        ns_view[i, 1] = -ny if back else ny
+        ns_view[i, 2] = -nz if back else nz
+        m = face_material[f]
+        material[i] = m
+        for k in range(3):
+            emission[i, k] = np.float64(emission_table[m, k]) if flip < 0.0 else 0.0
+        slot = tex_slot[m]
+        if slot < 0:
+            for k in range(3):
+                albedo[i, k] = np.float64(albedo_table[m, k])
+            continue
+        uvx = (np.float64(uvs[f0, 0]) * b0 + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
+        uvy = (np.float64(uvs[f0, 1]) * b0 + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
+        h, w, c, off = tex_shape[slot, 0], tex_shape[slot, 1], tex_shape[slot, 2], tex_shape[slot, 3]
+        x = uvx * w - 0.5
+        y = uvy * h - 0.5
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        # Repeating texel indices (numpy's floor modulo); an integer division only where the texel lies outside
+        # the first repeat, and the neighbour wraps by comparison (the same indices, fewer divisions).
+        x0i, y0i = np.int64(x0), np.int64(y0)
+        if x0i < 0 or x0i >= w:
+            x0i %= w
+        if y0i < 0 or y0i >= h:
+            y0i %= h
+        x1i = x0i + 1 if x0i + 1 < w else 0
+        y1i = y0i + 1 if y0i + 1 < h else 0
+        for k in range(3):
+            ch = k if c > 1 else 0
+            t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
+            t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
+            t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
+            t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
+            val = (((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11
+            albedo[i, k] = np.float64(np.float32(val))
+
+
+_compiled = None
+
+
+def _kernels():
+    """:func:`_camera` and :func:`_surface_pass` compiled (numba, on first use)."""
+    global _compiled
+    if _compiled is None:
+        import numba
+
+        _gbuffer._kernels()  # binds suite.core.gbuffer's compiled hit geometry, which _surface_pass calls
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+        _compiled = (jit(_camera), jit(_surface_pass))
+    return _compiled
 
 
 def empty_surface(n: int) -> Surface:
@@ -237,36 +432,45 @@ def _blend_overlays(scene, t_s, s: Surface, layers, overlay_kind, overlay_alpha:
 def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.ndarray, jitter: bool = False,
                   aperture_m: float = 0.0, focal_m: float = 1.0, overlay_kind: np.ndarray | None = None,
                   overlay_alpha: float = 0.5):
-    """(G-buffer, shading samples) of one frame (module docstring)."""
+    """(G-buffer, shading samples) of one frame (module docstring).
+
+    With jitter or depth of field the shading rays are traced first, and a worker thread computes their
+    surfaces (a compiled pass that releases the GIL) while the G-buffer's pixel-centre rays are traced: the
+    same queries and results as one after the other."""
     width, height = resolution
-    g, o64, d64, hits = trace_primary(scene, tracer, t_s, (width, height), prev_t_s)
     skip = None if overlay_kind is None else overlay_kind > 0
-    # Pixel centres whose first hit is an overlay: the opaque surface behind it (the G-buffer's guides, and the
-    # shading sample when there is no jitter).
-    over, centre, centre_layers = np.zeros(0, np.int64), None, []
-    if skip is not None:
-        over = np.nonzero(g.valid.reshape(-1) & skip[np.maximum(g.prim.reshape(-1), 0)])[0]
-        if len(over):
-            h = walk_past(tracer, o64[over], d64[over], np.inf, skip, centre_layers)
-            centre = surface_from_hits(scene, t_s, o64[over], d64[over], h.prim, h.u, h.v, h.t)
-            centre_layers = [(over[r], p, u, v, t) for r, p, u, v, t in centre_layers]
-    if jitter or aperture_m > 0.0:
-        o, d = camera_rays(scene, t_s, width, height, seeds, jitter, aperture_m, focal_m)
-        layers = []
-        if skip is None:
-            h = tracer.intersect(o, d.astype(np.float32))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending, layers = None, []
+        if jitter or aperture_m > 0.0:
+            tracer.update(t_s)  # the scene at t_s, as the G-buffer's query below sees it (it updates again: a no-op)
+            o, d = camera_rays(scene, t_s, width, height, seeds, jitter, aperture_m, focal_m)
+            if skip is None:
+                h = tracer.intersect(o, d.astype(np.float32))
+            else:
+                h = walk_past(tracer, o, d, np.inf, skip, layers)
+            pending = pool.submit(surface_from_hits, scene, t_s, o, d, h.prim, h.u, h.v, h.t)
+        g, o64, d64, hits = trace_primary(scene, tracer, t_s, (width, height), prev_t_s)
+        # Pixel centres whose first hit is an overlay: the opaque surface behind it (the G-buffer's guides, and the
+        # shading sample when there is no jitter).
+        over, centre, centre_layers = np.zeros(0, np.int64), None, []
+        if skip is not None:
+            over = np.nonzero(g.valid.reshape(-1) & skip[np.maximum(g.prim.reshape(-1), 0)])[0]
+            if len(over):
+                h = walk_past(tracer, o64[over], d64[over], np.inf, skip, centre_layers)
+                centre = surface_from_hits(scene, t_s, o64[over], d64[over], h.prim, h.u, h.v, h.t)
+                centre_layers = [(over[r], p, u, v, t) for r, p, u, v, t in centre_layers]
+        if pending is not None:
+            # surface_from_hits fills the raw normals of every hit already.
+            s = pending.result()
+            _blend_overlays(scene, t_s, s, layers, overlay_kind, overlay_alpha)
         else:
-            h = walk_past(tracer, o, d, np.inf, skip, layers)
-        s = surface_from_hits(scene, t_s, o, d, h.prim, h.u, h.v, h.t)
-        _blend_overlays(scene, t_s, s, layers, overlay_kind, overlay_alpha)
-    else:
-        s = _surface_from_gbuffer(g, o64, d64, hits)
-        if centre is not None:
-            _set_rows(s, over, centre)
-            _blend_overlays(scene, t_s, s, centre_layers, overlay_kind, overlay_alpha)
+            s = _surface_from_gbuffer(g, o64, d64, hits)
+            if centre is not None:
+                _set_rows(s, over, centre)
+                _blend_overlays(scene, t_s, s, centre_layers, overlay_kind, overlay_alpha)
+            _raw_normals(scene, t_s, s, np.nonzero(s.valid & np.isin(s.material, _raw_normal_materials(scene)))[0])
     if centre is not None:
         _patch_gbuffer(g, over, centre, scene)
-    _raw_normals(scene, t_s, s, np.nonzero(s.valid & np.isin(s.material, _raw_normal_materials(scene)))[0])
     return g, s
 
 

@@ -216,14 +216,16 @@ def _facing(ng, ns, dirs, ng_view, ns_view, front):
 
 
 def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_material, face_kind, face_object,
-            albedo_table, emission_table, motion_on, prev_xform, prev_cam, prev_basis, tan_x, aspect, width,
-            position, geo, normal, albedo, emission, depth, material, kind, motion):
+            albedo_table, emission_table, uvs, tex_slot, tex_shape, tex_data, motion_on, prev_xform, prev_cam,
+            prev_basis, tan_x, aspect, width, position, geo, normal, albedo, emission, depth, material, kind, motion):
     """The whole per-pixel G-buffer in one pass over the pixels (:func:`trace_primary`): for a hit, the attributes of
     :func:`surface_attributes` (barycentrics ``1 - u - v`` in float32, then float64; the position on the camera
     ray's plane intersection), the facing of :func:`facing`, constant albedo, front-facing emission, depth,
     material, kind, and motion (the previous-time point through its object's ``prev_xform`` (3 x 4 rows per
-    object; none when nothing is animated), projected as :func:`project` computes it, plain (x + y) + z dot products as on the device); background
-    values for a miss. Textured albedo is looked up afterwards."""
+    object; none when nothing is animated), projected as :func:`project` computes it, plain (x + y) + z dot
+    products as on the device); background values for a miss. Albedo textures (``texture_table``) are looked up as
+    :func:`lookup_texture` does: float64 UVs interpolated as :func:`_materials` does, bilinear and repeating,
+    rounded to float32."""
     height = prim.shape[0] // width
     for i in range(prim.shape[0]):
         f = prim[i]
@@ -256,6 +258,27 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
         for k in range(3):
             albedo[i, k] = albedo_table[m, k]
             emission[i, k] = emission_table[m, k] if flip < 0.0 else np.float32(0.0)
+        slot = tex_slot[m]
+        if slot >= 0:
+            f0, f1, f2 = faces[f, 0], faces[f, 1], faces[f, 2]
+            b1, b2 = np.float64(u[i]), np.float64(v[i])
+            uvx = (np.float64(uvs[f0, 0]) * a + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
+            uvy = (np.float64(uvs[f0, 1]) * a + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
+            h, w, c, off = tex_shape[slot, 0], tex_shape[slot, 1], tex_shape[slot, 2], tex_shape[slot, 3]
+            x = uvx * w - 0.5
+            y = uvy * h - 0.5
+            x0, y0 = np.floor(x), np.floor(y)
+            fx, fy = x - x0, y - y0
+            x0i, y0i = np.int64(x0) % w, np.int64(y0) % h  # numba's integer % floors, as numpy's
+            x1i, y1i = (x0i + 1) % w, (y0i + 1) % h
+            for k in range(3):
+                ch = k if c > 1 else 0
+                t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
+                t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
+                t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
+                t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
+                val = (((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11
+                albedo[i, k] = np.float32(val)
         depth[i] = t[i]
         material[i] = m
         kind[i] = face_kind[f]
@@ -432,11 +455,11 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
                   scene.faces, hits.prim, hits.u, hits.v, hits.t, np.asarray(pose.position, np.float64), d64, dirs,
                   scene.face_material, scene.face_kind_codes(), scene.face_object,
                   np.stack([m.albedo for m in mats]).astype(np.float32),
-                  np.stack([m.emission for m in mats]).astype(np.float32), motion_on, prev_xform,
+                  np.stack([m.emission for m in mats]).astype(np.float32), scene.uvs, *texture_table(scene), motion_on,
+                  prev_xform,
                   np.asarray(prev_pose.position, np.float64), np.stack(prev_pose.basis()).astype(np.float64),
                   float(np.tan(np.radians(fov) / 2.0)), width / height, width,
                   position, geo, normal, albedo, emission, depth, material, kind, motion)
-    _textured_albedo(scene, albedo, material, hits.prim, hits.u, hits.v)
     valid = hits.prim >= 0
     hw = (height, width)
     g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
@@ -447,20 +470,37 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
     return g, o64, d64, hits
 
 
-def _textured_albedo(scene, albedo, material, prim, u, v) -> None:
-    """``albedo`` of the pixels on textured materials: the texture at the interpolated UVs (barycentrics as
-    :func:`surface_attributes` takes them), as :func:`_materials` looks them up."""
-    for mid, m in enumerate(scene.materials):
-        if m.albedo_texture is None:
-            continue
-        sel = np.nonzero(material == mid)[0]
-        if len(sel) == 0:
-            continue
-        us, vs = u[sel], v[sel]
-        w = np.stack([np.asarray(1.0 - us - vs).astype(np.float64), us.astype(np.float64), vs.astype(np.float64)],
-                     axis=-1)[..., None]
-        uv = (scene.uvs[scene.faces[prim[sel]]].astype(np.float64) * w).sum(axis=1)
-        albedo[sel] = lookup_texture(m.albedo_texture, uv)
+_PACKED_TEXTURES: dict = {}  # ids of a scene's albedo textures -> (the textures, their packed table)
+
+
+def texture_table(scene):
+    """The albedo textures of ``scene``'s materials packed for compiled lookups: (texture slot per material (M,) int64,
+    -1 for a constant albedo; (slots, 4) int64 rows of height, width, channels and offset; every texture flat in
+    one float32 array). Packed once per set of texture arrays (a scene's textures do not change after loading)."""
+    textures = tuple(m.albedo_texture for m in scene.materials)
+    key = tuple(id(t) for t in textures)
+    packed = _PACKED_TEXTURES.get(key)
+    if packed is None:
+        slot = np.full(len(textures), -1, np.int64)
+        shapes, flat, offset = [], [], 0
+        for mid, tex in enumerate(textures):
+            if tex is None:
+                continue
+            tex = np.asarray(tex, np.float32)
+            tex = tex.reshape(tex.shape[0], tex.shape[1], -1)
+            if tex.shape[2] not in (1, 3):
+                raise UserError(f"scene '{scene.name}': material '{scene.materials[mid].name}' has an albedo texture "
+                                f"with {tex.shape[2]} channels (supported: 1 or 3)")
+            slot[mid] = len(shapes)
+            shapes.append((tex.shape[0], tex.shape[1], tex.shape[2], offset))
+            flat.append(tex.reshape(-1))
+            offset += tex.size
+        table = (slot, np.array(shapes, np.int64).reshape(-1, 4),
+                 np.concatenate(flat) if flat else np.zeros(1, np.float32))
+        if len(_PACKED_TEXTURES) >= 4:
+            _PACKED_TEXTURES.clear()
+        packed = _PACKED_TEXTURES[key] = (textures, table)  # the textures stay referenced: their ids stay theirs
+    return packed[1]
 
 
 def _previous_transforms(scene, t_s: float, prev_t_s: float) -> np.ndarray:

@@ -1,0 +1,212 @@
+"""The compiled passes of the primary and direct stages give the bits of their references: camera rays and
+shading samples (primary.py) against whole-array numpy, the one-pass shadow-ray generation of direct.py against
+its two-pass reference (``_select`` then ``_rays`` on ``offset_ray_origin``), the accumulation against
+``np.bincount``, and the direct stage's image against the chunking."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from methods.quake_drt import culling, direct, lights as lights_mod, primary, testscenes
+from methods.quake_drt.rng import pixel_seeds
+from suite.core.shading import SHADOW_TMAX_SCALE
+from suite.core.trace import make
+from suite.core.trace.robust import offset_ray_origin
+
+SURFACE_FIELDS = ("valid", "prim", "u", "v", "p", "ng", "ns", "ng_view", "ns_view", "albedo", "emission", "material",
+                  "o", "d", "t", "overlay_rgb", "overlay_t")
+
+
+def _same(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+
+
+def _textured(scene, channels=(3, 1, 3), seed=0):
+    """``scene`` with random albedo textures (of the given channel counts, odd sizes) on its first materials and
+    texture coordinates far outside [0, 1] (the lookup repeats), so that every branch of the lookup runs."""
+    rng = np.random.default_rng(seed)
+    mats = list(scene.materials)
+    for i, c in enumerate(channels[:len(mats)]):
+        tex = rng.random((5 + 3 * i, 7 + 2 * i, c)).astype(np.float32)
+        mats[i] = dataclasses.replace(mats[i], albedo_texture=tex)
+    uvs = rng.uniform(-3.0, 3.0, (len(scene.positions), 2)).astype(np.float32)
+    return dataclasses.replace(scene, materials=mats, uvs=uvs)
+
+
+def _scenes(small_map=None):
+    scene, _ = testscenes.two_rooms(door_open=False, lights_in_b=1)  # the door is material 1
+    out = [scene, _textured(scene)]
+    if small_map is not None:
+        from suite.harness import runner
+
+        out.append(runner.load_scene(small_map))
+    return out
+
+
+@pytest.mark.parametrize("jitter", [False, True])
+def test01_camera_rays_compiled_equal_numpy(jitter):
+    scene, _ = testscenes.two_rooms()
+    for w, h in ((37, 23), (64, 48), (1, 1)):
+        seeds = pixel_seeds(5, w, h).reshape(-1)
+        o, d = primary.camera_rays(scene, 0.0, w, h, seeds, jitter)
+        ro, rd = primary.camera_rays_reference(scene, 0.0, w, h, seeds, jitter)
+        assert _same(o, ro) and _same(d, rd)
+
+
+def _random_hits(scene, n, seed):
+    """Hits on random faces at random barycentrics (some misses), of random rays through the hit points."""
+    rng = np.random.default_rng(seed)
+    prim = rng.integers(0, len(scene.faces), n).astype(np.int32)
+    prim[rng.random(n) < 0.1] = -1
+    u = rng.random(n).astype(np.float32)
+    v = (rng.random(n) * (1.0 - u)).astype(np.float32)
+    o = rng.normal(0.0, 3.0, (n, 3))
+    d = rng.normal(0.0, 1.0, (n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = np.where(prim >= 0, rng.uniform(0.1, 10.0, n), np.inf).astype(np.float32)
+    u[prim < 0], v[prim < 0] = 0.0, 0.0
+    return o, d, prim, u, v, t
+
+
+def test02_surface_pass_equals_the_reference_on_traced_and_random_hits():
+    for scene in _scenes():
+        tracer = make("embree", scene)
+        w, h = 40, 30
+        o, d = primary.camera_rays(scene, 0.0, w, h, pixel_seeds(3, w, h).reshape(-1), True)
+        hits = tracer.intersect(o, d.astype(np.float32))
+        cases = [(o, d, hits.prim, hits.u, hits.v, hits.t), _random_hits(scene, 4000, 1)]
+        for case, (co, cd, prim, u, v, t) in enumerate(cases):
+            s = primary.surface_from_hits(scene, 0.0, co, cd, prim, u, v, t)
+            ref = primary.surface_from_hits_reference(scene, 0.0, co, cd, prim, u, v, t)
+            for f in SURFACE_FIELDS:
+                assert _same(getattr(s, f), getattr(ref, f)), f
+            if case == 1 and scene.materials[1].albedo_texture is not None:  # both channel counts are read
+                one = s.albedo[s.material == 1]
+                three = s.albedo[s.material == 0]
+                assert len(one) and (one[:, 0] == one[:, 2]).all()
+                assert len(three) and (three[:, 0] != three[:, 2]).any() and len(np.unique(three[:, 0])) > 10
+
+
+def test03_surface_pass_on_an_openarena_map(small_map):
+    from suite.harness import runner
+
+    scene = runner.load_scene(small_map)
+    tracer = make("embree", scene)
+    w, h = 96, 54
+    o, d = primary.camera_rays(scene, 1.0, w, h, pixel_seeds(9, w, h).reshape(-1), True)
+    hits = tracer.intersect(o, d.astype(np.float32))
+    s = primary.surface_from_hits(scene, 1.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+    ref = primary.surface_from_hits_reference(scene, 1.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+    for f in SURFACE_FIELDS:
+        assert _same(getattr(s, f), getattr(ref, f)), f
+
+
+def test04_textures_the_pass_does_not_take_go_to_the_reference():
+    scene, _ = testscenes.two_rooms()
+    rgba = _textured(scene, channels=(4,))
+    assert primary._texture_table(rgba) is None
+    o, d, prim, u, v, t = _random_hits(rgba, 500, 2)
+    rgb = dataclasses.replace(rgba, materials=[dataclasses.replace(m, albedo_texture=None) for m in rgba.materials])
+    s = primary.surface_from_hits(rgb, 0.0, o, d, prim, u, v, t)
+    ref = primary.surface_from_hits_reference(rgb, 0.0, o, d, prim, u, v, t)
+    assert all(_same(getattr(s, f), getattr(ref, f)) for f in SURFACE_FIELDS)
+
+
+def _direct_setup(k_lights=40, soft=True):
+    scene, vis = testscenes.two_rooms(door_open=False, lights_in_b=2, extra_lights=k_lights)
+    scene = testscenes.with_visibility(scene, vis)
+    tracer = make("embree", scene)
+    w, h = 32, 24
+    seeds = pixel_seeds(11, w, h).reshape(-1)
+    o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
+    hits = tracer.intersect(o, d.astype(np.float32))
+    s = primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+    idx = np.nonzero(s.valid)[0]
+    lambert = np.ones(len(idx), bool)
+    lambert[::7] = False  # glossy points: no cos_x test
+    pts = direct.ShadingPoints(pixel=idx, throughput=np.ones((len(idx), 3)), p=s.p[idx], ng=s.ng_view[idx],
+                               ns=s.ns_view[idx], wi=-s.d[idx], albedo=s.albedo[idx], material=s.material[idx],
+                               prim=s.prim[idx], seed=seeds[idx], lambert=lambert)
+    lights = lights_mod.build_lights(scene, 0.0)
+    table = culling.build_table(vis, "scene", lights, scene.num_faces, 0.0254, True, scene.bounds())
+    rows = culling.point_rows(table, vis, pts.prim, pts.p, pts.ng, "triangle", 0.0254, True)
+    return scene, tracer, pts, lights, table, rows
+
+
+@pytest.mark.parametrize("k,mode,soft", [(0, "uniform", True), (0, "uniform", False), (1, "uniform", True),
+                                         (3, "uniform", True), (2, "power", True), (4, "irradiance", False)])
+def test05_one_pass_ray_generation_equals_select_then_rays(k, mode, soft):
+    scene, tracer, pts, lights, table, rows = _direct_setup()
+    mode_code = direct.MODES.index(mode)
+    cdf = {"uniform": np.zeros(len(table.row_lights)),
+           "power": direct.row_power_cdf(table.row_offsets, table.row_lights, lights.power),
+           "irradiance": direct.row_irradiance_cdf(table, lights)}[mode]
+    shift = np.asarray(tracer.shift, np.float64)
+    counts = np.diff(table.row_offsets)[rows]
+    widest = int((counts if k == 0 else np.minimum(counts, k)).max())
+    per_point = counts if k == 0 else np.minimum(counts, k)
+    cap = max(widest, int(per_point.sum()) // 5)  # several chunks
+    seeds = np.ascontiguousarray(pts.seed, np.uint32)
+    light_args = (lights.kind, lights.position, lights.rgb, lights.area, lights.tri_offsets,
+                  np.ascontiguousarray(lights.tri_p0), lights.tri_e1, lights.tri_e2, lights.tri_normal, lights.tri_cdf,
+                  lights.rep_tri, soft, shift, 0.01, float(SHADOW_TMAX_SCALE))
+    pt_args = (pts.ng, pts.ns, pts.lambert, seeds)
+    origin = offset_ray_origin(pts.p, pts.ng, shift)
+
+    def outputs():
+        return (np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32), np.empty(cap, np.float32),
+                np.empty((cap, 3)), np.empty(cap, np.int32))
+
+    i_ref = i_new = 0
+    chunks = 0
+    while i_ref < len(rows):
+        s_point, s_light, s_dim = (np.empty(cap, np.int64) for _ in range(3))
+        s_weight = np.empty(cap)
+        samples, i_ref, cand_ref, sel_ref = direct._select(i_ref, rows, table.row_offsets, table.row_lights, cdf, k,
+                                                           mode_code, seeds, np.empty(widest, np.int64), s_point,
+                                                           s_light, s_weight, s_dim)
+        ref = outputs()
+        n_ref = direct._rays(samples, s_point, s_light, s_weight, s_dim, origin, *pt_args, *light_args, *ref,
+                             np.empty(cap, np.int32))
+        new = outputs()
+        scratch = (np.empty(widest, np.int64), np.empty(widest, np.int64), np.empty(widest),
+                   np.empty(widest, np.int64))
+        n_new, i_new, cand, sel = direct._generate(i_new, cap, rows, table.row_offsets, table.row_lights, cdf, k,
+                                                   mode_code, *scratch, pts.p, *pt_args, *light_args, *new)
+        assert (n_new, i_new, cand, sel) == (n_ref, i_ref, cand_ref, sel_ref)
+        assert n_new > 0
+        for a, b in zip(new, ref):
+            assert _same(a[:n_new], b[:n_ref])
+        chunks += 1
+    assert chunks > 2
+
+
+def test06_accumulation_equals_bincount():
+    rng = np.random.default_rng(4)
+    n_pts, n_rays = 300, 20000
+    pt = np.sort(rng.integers(0, n_pts, n_rays)).astype(np.int32)
+    w = rng.random((n_rays, 3)) * 10.0 ** rng.uniform(-6, 3, (n_rays, 1))
+    occ = rng.random(n_rays) < 0.4
+    out = np.zeros((n_pts, 3))
+    visible = direct._accumulate(n_rays, occ, w, pt, out)
+    lit = np.nonzero(~occ)[0]
+    ref = np.zeros((n_pts, 3))
+    for c in range(3):
+        ref[:, c] += np.bincount(pt[lit], weights=w[lit, c], minlength=n_pts)
+    assert visible == len(lit)
+    assert _same(out, ref)
+
+
+def test07_the_direct_stage_does_not_depend_on_its_chunking(monkeypatch):
+    scene, tracer, pts, lights, table, rows = _direct_setup()
+    pts = dataclasses.replace(pts, lambert=np.ones(len(pts), bool))
+    md = 0.01
+    whole, st_whole = direct.shade(pts, lights, table, rows, 0, "uniform", True, tracer, scene, md, 1 << 24)
+    monkeypatch.setattr(direct, "PIPELINE_FIRST_SAMPLES", 64)
+    monkeypatch.setattr(direct, "PIPELINE_MAX_SAMPLES", 2048)
+    chunked, st_chunked = direct.shade(pts, lights, table, rows, 0, "uniform", True, tracer, scene, md, 1 << 24)
+    small, st_small = direct.shade(pts, lights, table, rows, 0, "uniform", True, tracer, scene, md, 1024)
+    assert _same(whole, chunked) and _same(whole, small)
+    assert st_whole == st_chunked == st_small
+    assert st_whole.rays > 4096
