@@ -145,6 +145,7 @@ class LayeredPVS(Method):
         self._server: dict = {}      # client -> server-side state
         self._canonical = None       # scene vertex -> first vertex with the same position
         self._client: dict = {}      # this client's state (one client per instance)
+        self._extent = None          # (scene, scene.extent) of the last scene served
 
     # ------------------------------------------------------------------------------------------ server
 
@@ -154,6 +155,13 @@ class LayeredPVS(Method):
             st = {"history": [], "pvs": codecs.PVSState(), "encoder": None, "count": 0}
             self._server[c] = st
         return st
+
+    def _scene_extent(self, scene) -> float:
+        """``scene.extent`` (the diagonal of the rest positions' box: fixed per scene), computed once per scene
+        rather than by a pass over every vertex in each update's ``pvs`` stage."""
+        if self._extent is None or self._extent[0] is not scene:
+            self._extent = (scene, float(scene.extent))
+        return self._extent[1]
 
     def _layer_view(self, ctx, pose) -> server.LayerView:
         w, h = ctx.resolution
@@ -180,7 +188,7 @@ class LayeredPVS(Method):
             if len(hist) >= 2 and hist[-1][0] > hist[-2][0]:
                 speed = float(np.linalg.norm(np.asarray(hist[-1][1].position) - np.asarray(hist[-2][1].position))
                               / (hist[-1][0] - hist[-2][0]))
-            corner = max(speed, float(p["corner_speed"]) * scene.extent) * period_s
+            corner = max(speed, float(p["corner_speed"]) * self._scene_extent(scene)) * period_s
             views = server.predict_views(hist, period_s, corner)
             pvs_ids = server.compute_pvs(tracer, views, view.fov_deg, view.width, view.height)
             sg.pixels = len(views) * view.width * view.height
@@ -190,7 +198,7 @@ class LayeredPVS(Method):
         with ctx.stage("layers", place="server") as sg:
             o64, d64 = server.view_rays(view)
             layers = server.peel(tracer.intersect, o64.astype(np.float32), d64.astype(np.float32), L,
-                                 keep=lambda prim: in_pvs[prim], shape=(view.height, view.width))
+                                 keep_mask=in_pvs, shape=(view.height, view.width))
             sg.pixels = view.width * view.height
 
         with ctx.stage("path_trace", place="server") as sg:
@@ -417,8 +425,11 @@ def _motion(ctx) -> tuple[str, float]:
 
 
 def _warm_up() -> None:
-    """Compiles the numba kernels (SVGF, Huffman coding, relocation) before the first update, so that no update's
-    stage time holds a compilation."""
+    """Compiles the numba kernels (SVGF, Huffman coding, relocation, the path tracer's passes) before the first
+    update, so that no update's stage time holds a compilation."""
+    from methods.layered_pvs import kernels
+
+    kernels.warm_up()
     one = np.ones((1, 1, 1), bool)
     server.svgf_layers(np.zeros((1, 1, 1, 3)), np.zeros((1, 1, 1)), np.zeros((1, 1, 1, 3)), np.zeros((1, 1, 1, 3)),
                        one, np.ones((1, 1, 1)), 0.01, iterations=1)

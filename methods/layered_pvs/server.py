@@ -18,6 +18,8 @@ from suite.core.gbuffer import camera_rays, surface_attributes
 from suite.core.scene.model import CameraPose
 from suite.core.trace.robust import offset_ray_origin
 
+from methods.layered_pvs import kernels
+
 SHADOW_TMAX_SCALE = 1.0 - 1e-4
 PEEL_REL_EPS = 1e-5         # depth peeling: the next layer starts this far (relative) past the previous hit
 
@@ -87,8 +89,10 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
     scene), marked and compacted (the prefix sum of the thesis = ``np.nonzero`` of the marks). Sorted ids."""
     marks = np.zeros(tracer.scene.num_faces, bool)
     for pose in views:
-        o, d = camera_rays(pose, fov_deg, width, height, dtype=np.float64)
-        hits = tracer.intersect(o.astype(np.float32), d.astype(np.float32))
+        # float32 rays straight from the compiled camera pass (its float64 directions rounded once, as a float64
+        # pass and a cast would give them, without the two extra copies)
+        o, d = camera_rays(pose, fov_deg, width, height, dtype=np.float32)
+        hits = tracer.intersect(o, d)
         marks[hits.prim[hits.prim >= 0]] = True
     return np.nonzero(marks)[0].astype(np.int64)
 
@@ -112,11 +116,50 @@ class Layers:
 
 
 def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, max_skips: int = 256,
-         shape=None) -> Layers:
+         shape=None, keep_mask: np.ndarray | None = None) -> Layers:
     """Ray-traced depth peeling (§4.1.2): layer k is the nearest hit past layer k-1's hit (``tmin`` = that distance
-    plus a relative epsilon). ``keep`` (prim -> bool) restricts primary hits to the PVS: a hit on another triangle
-    is stepped over and the ray traced again from just past it (secondary and shadow rays are not affected).
-    ``intersect(o, d, tmin) -> Hits``; origins and directions float32 (N, 3)."""
+    plus a relative epsilon). ``keep_mask`` (bool per triangle; or ``keep``, prim -> bool) restricts primary hits to
+    the PVS: a hit on another triangle is stepped over and the ray traced again from just past it (secondary and
+    shadow rays are not affected). ``intersect(o, d, tmin) -> Hits``; origins and directions float32 (N, 3).
+
+    Between queries, one compiled pass (:mod:`methods.layered_pvs.kernels`) takes in the hits and gathers the
+    next query's rays into buffers allocated once; a ``keep`` callable takes :func:`peel_reference` instead."""
+    if keep is not None and keep_mask is None:
+        return peel_reference(intersect, origins, dirs, layers, keep, max_skips, shape)
+    kern = kernels.jit()
+    n = len(dirs)
+    t_out = np.full((layers, n), np.inf, np.float32)
+    p_out = np.full((layers, n), -1, np.int64)
+    u_out = np.zeros((layers, n), np.float32)
+    v_out = np.zeros((layers, n), np.float32)
+    use_keep = keep_mask is not None
+    mask = np.ascontiguousarray(keep_mask, np.bool_) if use_keep else np.zeros(1, np.bool_)
+    origins, dirs = np.ascontiguousarray(origins), np.ascontiguousarray(dirs)
+    scale32 = np.float32(1 + PEEL_REL_EPS)
+    idx_b, start_b = np.empty(n, np.int64), np.empty(n, np.float32)
+    o_b, d_b = np.empty_like(origins), np.empty_like(dirs)
+    # Layer 0: every pixel from the camera (the per-ray tmin array as the reference passes it).
+    idx, start, o, d, m = np.arange(n), np.zeros(n, np.float32), origins, dirs, n
+    for k in range(layers):
+        for _ in range(max_skips):
+            if m == 0:
+                break
+            h = intersect(o[:m], d[:m], start[:m])
+            m = kern["_peel_hits"](h.prim, h.t, h.u, h.v, idx[:m], mask, use_keep, k, scale32, t_out, p_out, u_out,
+                                   v_out, origins, dirs, idx_b, start_b, o_b, d_b)
+            idx, start, o, d = idx_b, start_b, o_b, d_b
+        m = kern["_peel_next"](p_out[k], t_out[k], scale32, origins, dirs, idx_b, start_b, o_b, d_b)
+        idx, start, o, d = idx_b, start_b, o_b, d_b
+        if m == 0:
+            break
+    shp = (layers,) + tuple(shape) if shape is not None else (layers, n)
+    return Layers(t_out.reshape(shp), p_out.reshape(shp), u_out.reshape(shp), v_out.reshape(shp))
+
+
+def peel_reference(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None,
+                   max_skips: int = 256, shape=None) -> Layers:
+    """:func:`peel` as whole-array numpy expressions (gathers, masks and scatters per query), with ``keep`` any
+    callable prim -> bool: the reference its compiled passes are tested against."""
     n = len(dirs)
     t_out = np.full((layers, n), np.inf, np.float32)
     p_out = np.full((layers, n), -1, np.int64)
@@ -201,11 +244,16 @@ class LightSampler:
         lights = scene.lights_at(t_s)
         self.point_pos = np.array([lt.position for lt in lights], np.float64).reshape(-1, 3)
         self.point_int = np.array([lt.intensity for lt in lights], np.float64).reshape(-1, 3)
-        tl = scene.area_light_triangles(t_s)
-        self.tri = tl.vertices.reshape(-1, 3, 3)
-        self.tri_n = tl.normal.reshape(-1, 3)
-        self.tri_l = tl.radiance.reshape(-1, 3)
-        self.tri_area = tl.area.reshape(-1)
+        if any(m.is_emissive for m in scene.materials):
+            tl = scene.area_light_triangles(t_s)
+            self.tri = tl.vertices.reshape(-1, 3, 3)
+            self.tri_n = tl.normal.reshape(-1, 3)
+            self.tri_l = tl.radiance.reshape(-1, 3)
+            self.tri_area = tl.area.reshape(-1)
+        else:
+            # no emitter: the empty light list without gathering every triangle of the scene (a few ms per update)
+            self.tri, self.tri_n, self.tri_l, self.tri_area = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), \
+                np.zeros(0)
         power = np.concatenate([4 * np.pi * self.point_int.mean(axis=1),
                                 np.pi * self.tri_area * self.tri_l.mean(axis=1)])
         total = power.sum()
@@ -239,6 +287,14 @@ class LightSampler:
 
     def __len__(self):
         return int((self.pmf > 0).sum())
+
+    def kernel_args(self) -> tuple:
+        """The light arrays in the order :func:`methods.layered_pvs.kernels._shade_vertex` takes them (the choice
+        per point as :meth:`choose` makes it, the sample as :meth:`sample` draws it)."""
+        c = np.ascontiguousarray
+        return (len(self.power) <= self.PER_POINT_LIGHTS, c(self.power), c(self.centres), float(self.min_d2),
+                c(self.cdf), c(self.pmf), int(self.n_point), c(self.point_pos), c(self.point_int), c(self.tri),
+                c(self.tri_n), c(self.tri_l), c(self.tri_area))
 
     def sample(self, p, u_sel, u2):
         """Per point: direction, distance, radiance-weighted contribution factor (L cos_y / (d^2 pdf)), validity."""
@@ -317,7 +373,78 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     with the Quake levels' ~100 point lights, one light per primary fragment leaves heavy-tailed noise (the
     direct light comes from rare bright samples) that the layered SVGF, without the thesis's temporal
     accumulation, rejects through its luminance edge-stopping; the denoised layers came out about half as
-    bright as the reference (tests/methods/layered_pvs/test_radiance.py)."""
+    bright as the reference (tests/methods/layered_pvs/test_radiance.py).
+
+    The bounces run as compiled passes over the wavefront (:mod:`methods.layered_pvs.kernels`) with the bits of
+    :func:`path_trace_reference`."""
+    n = len(frag.position)
+    lights = LightSampler(scene, t_s)
+    if n == 0 or max_depth < 2 or len(lights) == 0:
+        return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
+    direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), int(rng.integers(1 << 31)))
+    positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
+    shift = getattr(tracer, "shift", None)
+    shift64 = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
+    kern = kernels.jit()
+    offset = kernels.OFFSET
+    light_args = lights.kernel_args()
+    lum_w = np.array([0.2126, 0.7152, 0.0722])
+    # One wavefront holds every sample of every fragment (row = sample * n + fragment); rows stay unique within
+    # a wavefront, so contributions are added without conflicts. The wavefront shrinks in place: its buffers are
+    # allocated once for every path (the compiled passes compact into them, a row never moving up).
+    total = n * spp
+    rows = np.arange(total)
+    thr = np.ones((total, 3))          # demodulated: the primary vertex's albedo is left out
+    p = np.tile(frag.position, (spp, 1))
+    ng = np.tile(frag.geo_normal, (spp, 1))
+    ns = np.tile(frag.normal, (spp, 1))
+    sample = np.tile(direct.astype(np.float64), (spp, 1))
+    o64, d64 = np.empty((total, 3)), np.empty((total, 3))
+    o32, d32 = np.empty((total, 3), np.float32), np.empty((total, 3), np.float32)
+    prim, u, v = np.empty(total, np.int32), np.empty(total, np.float32), np.empty(total, np.float32)
+    sel_rows, sel_tmax32 = np.empty(total, np.int64), np.empty(total, np.float32)
+    sel_o32, sel_d32 = np.empty((total, 3), np.float32), np.empty((total, 3), np.float32)
+    sel_contrib = np.empty((total, 3))
+    no_rr = np.zeros(0)
+    m = total
+    depth = 1
+    while m and depth + 1 < max_depth:
+        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains); the random
+        # numbers in the reference's calls and sizes.
+        use_rr = depth >= rr_depth
+        u_rr = rng.random(m) if use_rr else no_rr
+        m = kern["_bounce"](rows[:m], ns, ng, p, thr[:m], use_rr, u_rr, rng.random((m, 2)), shift64, *offset,
+                            rows, thr, o64, d64, o32, d32)
+        if m == 0:
+            break
+        hits = tracer.intersect(o32[:m], d32[:m])
+        m = kern["_compact_hits"](hits.prim, hits.u, hits.v, rows[:m], o64[:m], d64[:m], thr[:m], prim, u, v, rows,
+                                  o64, d64, thr)
+        if m == 0:
+            break
+        p, ng_raw, ns_raw, alb, _ = surface_attributes(scene, positions, normals, prim[:m], u[:m], v[:m], o64[:m],
+                                                       d64[:m])
+        depth += 1
+        # Next-event estimation towards one light.
+        u_sel, u2 = rng.random(m), rng.random((m, 2))
+        ng, ns = np.empty((m, 3)), np.empty((m, 3))
+        k = kern["_shade_vertex"](rows[:m], p, ng_raw, ns_raw, alb, d64[:m], thr[:m], u_sel, u2, *light_args, shift64,
+                                  *offset, SHADOW_TMAX_SCALE, ng, ns, thr, sel_rows, sel_o32, sel_d32, sel_tmax32,
+                                  sel_contrib)
+        if k:
+            occ = tracer.occluded(sel_o32[:k], sel_d32[:k], 0.0, sel_tmax32[:k])
+            kern["_add_unoccluded"](sample, sel_rows[:k], sel_contrib[:k], np.asarray(occ, np.bool_))
+    per = sample.reshape(spp, n, 3)
+    illum = per.sum(axis=0)
+    lum = per @ lum_w
+    m1 = lum.sum(axis=0)
+    m2 = (lum * lum).sum(axis=0)
+    return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
+
+
+def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
+    """:func:`path_trace` as whole-array numpy expressions per bounce (the reference its compiled passes,
+    :mod:`methods.layered_pvs.kernels`, are tested against: the same bits from the same generator)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:

@@ -1,0 +1,309 @@
+"""Compiled passes of the server's path tracer (§4.4) and depth peeling (§4.1.2).
+
+Each pass replaces a chain of whole-array numpy expressions in :mod:`methods.layered_pvs.server` (``*_reference``
+there) with one loop over the rays: the numpy chain made a dozen float64 temporaries, fancy-index gathers and
+masks per bounce, and cost three times the backend's own time on the same rays (``splitbench bench
+layered_pvs``, ``path_trace_ratio`` 0.25). Every float64 operation is written in the order of the numpy
+expression it replaces, so the passes give the same bits:
+
+* ``np.einsum("ij,ij->i", a, b)`` over 3 columns adds as ``(a0 b0 + a2 b2) + a1 b1``;
+* ``.sum(axis=-1)`` and ``np.linalg.norm(axis=-1)`` over 3 columns add left to right;
+* ``np.cross`` is ``a1 b2 - a2 b1`` etc. (two rounded products, then the difference).
+
+No fast-math: LLVM then neither reorders nor contracts into FMAs, so the bits follow the source. Random numbers
+still come from the method's numpy ``Generator``, in the same calls and sizes as the reference, so a seeded
+update gives the same paths.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
+
+INV_PI = 1.0 / np.pi
+
+
+# ------------------------------------------------------------------------------------------ shared helpers
+
+def _offset_origin(px, py, pz, nx, ny, nz, shift, offset_ulps, float_scale):
+    """:func:`suite.core.trace.robust.offset_ray_origin` for one point: ``offset_ulps`` float32 ULPs of the largest
+    tracing-frame coordinate (``np.spacing`` of a non-negative float32 = next float32 up minus it), at least
+    ``float_scale``, along the normal."""
+    mag = np.float32(max(max(abs(px - shift[0]), abs(py - shift[1])), abs(pz - shift[2])))
+    ulp = np.float64(np.nextafter(mag, np.float32(np.inf)) - mag)
+    step = max(offset_ulps * ulp, float_scale)
+    return px + step * nx, py + step * ny, pz + step * nz
+
+
+def _bounce(rows, ns, ng, p, thr, use_rr, u_rr, u_dir, shift, offset_ulps, float_scale,
+            rows_out, thr_out, o64_out, d64_out, o32_out, d32_out):
+    """One path-tracing bounce before the closest-hit query (§4.4): Russian roulette (survival probability
+    ``min(max throughput, 0.95)``, survivors' throughput divided by it) when ``use_rr``, a cosine-weighted
+    direction about the shading normal, and the paths that survive both and leave above the geometric normal,
+    compacted: row, throughput, float64 and float32 ray origins (offset along the geometric normal) and
+    directions. Returns their count. The reference: the loop head of ``server.path_trace_reference`` with
+    ``server._cosine_hemisphere``."""
+    k = 0
+    two_pi = 2 * np.pi
+    for i in range(len(rows)):
+        t0, t1, t2 = thr[i, 0], thr[i, 1], thr[i, 2]
+        live = True
+        if use_rr:
+            q = min(max(max(t0, t1), t2), 0.95)
+            live = u_rr[i] < q
+            qd = max(q, 1e-12)
+            t0, t1, t2 = t0 / qd, t1 / qd, t2 / qd
+        # Cosine-weighted hemisphere about the shading normal (its pdf cos/pi cancels the Lambertian BRDF's).
+        u0 = u_dir[i, 0]
+        r = np.sqrt(u0)
+        phi = two_pi * u_dir[i, 1]
+        lx, ly, lz = r * np.cos(phi), r * np.sin(phi), np.sqrt(max(0.0, 1 - u0))
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        if abs(n0) > 0.9:
+            a0, a1, a2 = 0.0, 1.0, 0.0
+        else:
+            a0, a1, a2 = 1.0, 0.0, 0.0
+        c0, c1, c2 = n1 * a2 - n2 * a1, n2 * a0 - n0 * a2, n0 * a1 - n1 * a0
+        cl = np.sqrt((c0 * c0 + c1 * c1) + c2 * c2)
+        c0, c1, c2 = c0 / cl, c1 / cl, c2 / cl
+        b0, b1, b2 = n1 * c2 - n2 * c1, n2 * c0 - n0 * c2, n0 * c1 - n1 * c0
+        d0 = (lx * c0 + ly * b0) + lz * n0
+        d1 = (lx * c1 + ly * b1) + lz * n1
+        d2 = (lx * c2 + ly * b2) + lz * n2
+        g0, g1, g2 = ng[i, 0], ng[i, 1], ng[i, 2]
+        if not (live and ((d0 * g0 + d2 * g2) + d1 * g1) > 0):
+            continue
+        ox, oy, oz = _offset_origin(p[i, 0], p[i, 1], p[i, 2], g0, g1, g2, shift, offset_ulps, float_scale)
+        rows_out[k] = rows[i]
+        thr_out[k, 0], thr_out[k, 1], thr_out[k, 2] = t0, t1, t2
+        o64_out[k, 0], o64_out[k, 1], o64_out[k, 2] = ox, oy, oz
+        d64_out[k, 0], d64_out[k, 1], d64_out[k, 2] = d0, d1, d2
+        o32_out[k, 0], o32_out[k, 1], o32_out[k, 2] = np.float32(ox), np.float32(oy), np.float32(oz)
+        d32_out[k, 0], d32_out[k, 1], d32_out[k, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
+        k += 1
+    return k
+
+
+def _compact_hits(prim, u, v, rows, o64, d64, thr, prim_out, u_out, v_out, rows_out, o64_out, d64_out, thr_out):
+    """The rays whose closest-hit query found a triangle, compacted (in place is fine: ``k <= i``). Returns their
+    count."""
+    k = 0
+    for i in range(len(prim)):
+        if prim[i] < 0:
+            continue
+        prim_out[k], u_out[k], v_out[k], rows_out[k] = prim[i], u[i], v[i], rows[i]
+        for c in range(3):
+            o64_out[k, c] = o64[i, c]
+            d64_out[k, c] = d64[i, c]
+            thr_out[k, c] = thr[i, c]
+        k += 1
+    return k
+
+
+def _choose_light(px, py, pz, u, per_point, power, centres, min_d2, cdf, pmf):
+    """``server.LightSampler.choose`` for one point: (light index, selection probability)."""
+    n_l = len(power)
+    if not per_point:
+        # np.searchsorted(cdf, x, side="right"): the first index whose cdf exceeds x.
+        x = u * cdf[n_l - 1]
+        lo, hi = 0, n_l
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if cdf[mid] <= x:
+                lo = mid + 1
+            else:
+                hi = mid
+        j = min(lo, n_l - 1)
+        return j, pmf[j]
+    # Per-point irradiance bound: two passes over the lights (the total first, then the cumulative sum up to the
+    # first entry not below u * total) instead of a (points x lights) cumulative-sum matrix.
+    tot = 0.0
+    for li in range(n_l):
+        dx, dy, dz = px - centres[li, 0], py - centres[li, 1], pz - centres[li, 2]
+        tot += power[li] / max((dx * dx + dy * dy) + dz * dz, min_d2)
+    x = u * tot
+    acc = 0.0
+    j = n_l - 1
+    wj = 0.0
+    for li in range(n_l):
+        dx, dy, dz = px - centres[li, 0], py - centres[li, 1], pz - centres[li, 2]
+        w = power[li] / max((dx * dx + dy * dy) + dz * dz, min_d2)
+        acc += w
+        if not acc < x:
+            j = li
+            wj = w
+            break
+    if j == n_l - 1 and acc < x:
+        # every partial sum below u * total (rounding): the reference clips the count to the last light
+        dx, dy, dz = px - centres[j, 0], py - centres[j, 1], pz - centres[j, 2]
+        wj = power[j] / max((dx * dx + dy * dy) + dz * dz, min_d2)
+    return j, wj / max(tot, 1e-300)
+
+
+def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, power, centres, min_d2, cdf, pmf,
+                  n_point, point_pos, point_int, tri, tri_n, tri_l, tri_area, shift, offset_ulps, float_scale,
+                  shadow_scale, ng_out, ns_out, thr_out, sel_rows, sel_o32, sel_d32, sel_tmax32, sel_contrib):
+    """A new path vertex (§4.4): normals turned toward the incoming ray (``server._facing``), throughput times the
+    albedo, and next-event estimation towards one light (``server.LightSampler.sample``): for the vertices where
+    the light is above the shading normal (and an area light's sample faces the vertex), the compacted shadow
+    ray (float32 origin offset to the light's side of the geometric normal, direction, length short of the light
+    by ``shadow_scale``), the path row and the contribution ``throughput * weight * cos / pi`` it adds when the
+    ray is unoccluded. Returns the number of shadow rays."""
+    k = 0
+    for i in range(len(rows)):
+        dx, dy, dz = d64[i, 0], d64[i, 1], d64[i, 2]
+        s = (ng_raw[i, 0] * dx + ng_raw[i, 2] * dz) + ng_raw[i, 1] * dy
+        flip = 1.0 if s > 0 else (-1.0 if s < 0 else 1.0)
+        g0, g1, g2 = -flip * ng_raw[i, 0], -flip * ng_raw[i, 1], -flip * ng_raw[i, 2]
+        n0, n1, n2 = ns_raw[i, 0], ns_raw[i, 1], ns_raw[i, 2]
+        if ((n0 * g0 + n2 * g2) + n1 * g1) < 0:
+            n0, n1, n2 = -n0, -n1, -n2
+        ng_out[i, 0], ng_out[i, 1], ng_out[i, 2] = g0, g1, g2
+        ns_out[i, 0], ns_out[i, 1], ns_out[i, 2] = n0, n1, n2
+        t0, t1, t2 = thr[i, 0] * alb[i, 0], thr[i, 1] * alb[i, 1], thr[i, 2] * alb[i, 2]
+        thr_out[i, 0], thr_out[i, 1], thr_out[i, 2] = t0, t1, t2
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        j, pmf_j = _choose_light(px, py, pz, u_sel[i], per_point, power, centres, min_d2, cdf, pmf)
+        if j < n_point:
+            yx, yy, yz = point_pos[j, 0], point_pos[j, 1], point_pos[j, 2]
+            ex, ey, ez = yx - px, yy - py, yz - pz
+            d2 = max((ex * ex + ey * ey) + ez * ez, 1e-12)
+            w0 = point_int[j, 0] / d2 / pmf_j
+            w1 = point_int[j, 1] / d2 / pmf_j
+            w2 = point_int[j, 2] / d2 / pmf_j
+            good = True
+        else:
+            jt = j - n_point
+            su = np.sqrt(u2[i, 0])
+            b1, b2 = 1 - su, u2[i, 1] * su
+            # the triangle's edges in its own precision (float32 light vertices subtract in float32)
+            yx = (tri[jt, 0, 0] + b1 * (tri[jt, 1, 0] - tri[jt, 0, 0])) + b2 * (tri[jt, 2, 0] - tri[jt, 0, 0])
+            yy = (tri[jt, 0, 1] + b1 * (tri[jt, 1, 1] - tri[jt, 0, 1])) + b2 * (tri[jt, 2, 1] - tri[jt, 0, 1])
+            yz = (tri[jt, 0, 2] + b1 * (tri[jt, 1, 2] - tri[jt, 0, 2])) + b2 * (tri[jt, 2, 2] - tri[jt, 0, 2])
+            ex, ey, ez = yx - px, yy - py, yz - pz
+            d2 = max((ex * ex + ey * ey) + ez * ez, 1e-12)
+            sd = np.sqrt(d2)
+            wx, wy, wz = ex / sd, ey / sd, ez / sd
+            cos_y = -((wx * tri_n[jt, 0] + wy * tri_n[jt, 1]) + wz * tri_n[jt, 2])
+            good = cos_y > 0
+            f = cos_y * tri_area[jt] / d2 / pmf_j
+            w0, w1, w2 = tri_l[jt, 0] * f, tri_l[jt, 1] * f, tri_l[jt, 2] * f
+        ex, ey, ez = yx - px, yy - py, yz - pz
+        dist = np.sqrt((ex * ex + ey * ey) + ez * ez)
+        dd = max(dist, 1e-30)
+        wx, wy, wz = ex / dd, ey / dd, ez / dd
+        cos_x = (wx * n0 + wz * n2) + wy * n1
+        if not (good and cos_x > 0):
+            continue
+        if ((wx * g0 + wz * g2) + wy * g1) >= 0:
+            sx, sy, sz = g0, g1, g2
+        else:
+            sx, sy, sz = -g0, -g1, -g2
+        ox, oy, oz = _offset_origin(px, py, pz, sx, sy, sz, shift, offset_ulps, float_scale)
+        qx, qy, qz = (px + wx * dist) - ox, (py + wy * dist) - oy, (pz + wz * dist) - oz
+        seg = np.sqrt((qx * qx + qy * qy) + qz * qz)
+        c = cos_x / np.pi
+        sel_rows[k] = rows[i]
+        sel_o32[k, 0], sel_o32[k, 1], sel_o32[k, 2] = np.float32(ox), np.float32(oy), np.float32(oz)
+        sel_d32[k, 0], sel_d32[k, 1], sel_d32[k, 2] = np.float32(wx), np.float32(wy), np.float32(wz)
+        sel_tmax32[k] = np.float32(seg * shadow_scale)
+        sel_contrib[k, 0], sel_contrib[k, 1], sel_contrib[k, 2] = t0 * w0 * c, t1 * w1 * c, t2 * w2 * c
+        k += 1
+    return k
+
+
+def _add_unoccluded(sample, rows, contrib, occluded):
+    """``sample[rows[~occluded]] += contrib[~occluded]`` (rows are unique within a wavefront)."""
+    for i in range(len(rows)):
+        if not occluded[i]:
+            r = rows[i]
+            for c in range(3):
+                sample[r, c] += contrib[i, c]
+
+
+# ------------------------------------------------------------------------------------------ depth peeling
+
+def _past(t, scale32):
+    """``server.past`` for one float32 distance: ``t * (1 + PEEL_REL_EPS)`` in float32, then the next float32 up."""
+    return np.nextafter(t * scale32, np.float32(np.inf))
+
+
+def _peel_hits(prim, t, u, v, idx, keep_mask, use_keep, k, scale32, t_out, p_out, u_out, v_out, origins, dirs,
+               idx_out, start_out, o_out, d_out):
+    """One closest-hit query of layer ``k`` of the depth peeling (§4.1.2) taken in: a hit on a kept triangle (any
+    hit without ``use_keep``) becomes the ray's fragment of layer k; a hit outside the PVS is stepped over, the ray
+    (pixel ``idx[i]``) compacted into the next query from just past it, its origin and direction gathered from
+    ``origins`` / ``dirs``; a miss ends the ray. ``idx`` may be ``idx_out`` itself (compaction in place). Returns
+    the number of rays to trace again."""
+    c = 0
+    for i in range(len(prim)):
+        f = prim[i]
+        if f < 0:
+            continue
+        j = idx[i]
+        if not use_keep or keep_mask[f]:
+            t_out[k, j], p_out[k, j], u_out[k, j], v_out[k, j] = t[i], f, u[i], v[i]
+            continue
+        idx_out[c] = j
+        start_out[c] = _past(t[i], scale32)
+        for a in range(3):
+            o_out[c, a] = origins[j, a]
+            d_out[c, a] = dirs[j, a]
+        c += 1
+    return c
+
+
+def _peel_next(p_k, t_k, scale32, origins, dirs, idx_out, start_out, o_out, d_out):
+    """The rays of the next layer: every pixel with a fragment in this layer (``p_k >= 0``), from just past it.
+    Returns their count."""
+    c = 0
+    for j in range(len(p_k)):
+        if p_k[j] < 0:
+            continue
+        idx_out[c] = j
+        start_out[c] = _past(t_k[j], scale32)
+        for a in range(3):
+            o_out[c, a] = origins[j, a]
+            d_out[c, a] = dirs[j, a]
+        c += 1
+    return c
+
+
+_compiled = None
+
+
+def jit():
+    """The passes compiled (numba, on first use; cached on disk)."""
+    global _compiled
+    if _compiled is None:
+        import numba
+
+        # error_model="numpy": IEEE division (the divisors are clamped or unit lengths) without per-division checks.
+        j = numba.njit(cache=True, nogil=True, error_model="numpy")
+        # the helpers are compiled first: the passes that call them are typed against the compiled versions
+        global _offset_origin, _choose_light, _past
+        _offset_origin, _choose_light, _past = j(_offset_origin), j(_choose_light), j(_past)
+        _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
+                                                 _peel_next)}
+    return _compiled
+
+
+OFFSET = (float(OFFSET_ULPS), float(FLOAT_SCALE))
+
+
+def warm_up() -> None:
+    """Compiles (or loads) every pass for the argument types the server gives them, on one-row arrays."""
+    k = jit()
+    f64, f32, i64 = np.zeros((1, 3)), np.zeros((1, 3), np.float32), np.zeros(1, np.int64)
+    one, one32, b = np.ones(1), np.ones(1, np.float32), np.zeros(1, np.bool_)
+    shift = np.zeros(3)
+    k["_bounce"](i64, f64, f64, f64, f64.copy(), True, one, np.zeros((1, 2)), shift, *OFFSET, i64.copy(), f64.copy(),
+                 f64.copy(), f64.copy(), f32.copy(), f32.copy())
+    k["_compact_hits"](np.zeros(1, np.int32), one32, one32, i64, f64, f64, f64, np.zeros(1, np.int32), one32.copy(),
+                       one32.copy(), i64.copy(), f64.copy(), f64.copy(), f64.copy())
+    for per_point in (True, False):
+        k["_shade_vertex"](i64, f64, f64, f64, f32, f64, f64, one, np.zeros((1, 2)), per_point, one, f64, 1.0, one, one,
+                           1, f64, f64, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), shift,
+                           *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f32.copy(), f32.copy(),
+                           np.zeros(1, np.float32), f64.copy())
+    k["_add_unoccluded"](f64.copy(), i64, f64, b)
