@@ -100,8 +100,9 @@ def _compact_hits(prim, u, v, rows, o64, d64, thr, prim_out, u_out, v_out, rows_
     return k
 
 
-def _choose_light(px, py, pz, u, per_point, power, centres, min_d2, cdf, pmf):
-    """``server.LightSampler.choose`` for one point: (light index, selection probability)."""
+def _choose_light(px, py, pz, u, per_point, power, centres, min_d2, cdf, pmf, w):
+    """``server.LightSampler.choose`` for one point: (light index, selection probability). ``w``: scratch of one
+    float64 per light."""
     n_l = len(power)
     if not per_point:
         # np.searchsorted(cdf, x, side="right"): the first index whose cdf exceeds x.
@@ -115,29 +116,23 @@ def _choose_light(px, py, pz, u, per_point, power, centres, min_d2, cdf, pmf):
                 hi = mid
         j = min(lo, n_l - 1)
         return j, pmf[j]
-    # Per-point irradiance bound: two passes over the lights (the total first, then the cumulative sum up to the
-    # first entry not below u * total) instead of a (points x lights) cumulative-sum matrix.
+    # Per-point irradiance bound: the weights and their total in one pass, then the cumulative sum up to the first
+    # entry not below u * total (the count of entries below it, clipped to the last light), without the reference's
+    # (points x lights) cumulative-sum matrix.
     tot = 0.0
     for li in range(n_l):
         dx, dy, dz = px - centres[li, 0], py - centres[li, 1], pz - centres[li, 2]
-        tot += power[li] / max((dx * dx + dy * dy) + dz * dz, min_d2)
+        w[li] = power[li] / max((dx * dx + dy * dy) + dz * dz, min_d2)
+        tot += w[li]
     x = u * tot
     acc = 0.0
     j = n_l - 1
-    wj = 0.0
     for li in range(n_l):
-        dx, dy, dz = px - centres[li, 0], py - centres[li, 1], pz - centres[li, 2]
-        w = power[li] / max((dx * dx + dy * dy) + dz * dz, min_d2)
-        acc += w
+        acc += w[li]
         if not acc < x:
             j = li
-            wj = w
             break
-    if j == n_l - 1 and acc < x:
-        # every partial sum below u * total (rounding): the reference clips the count to the last light
-        dx, dy, dz = px - centres[j, 0], py - centres[j, 1], pz - centres[j, 2]
-        wj = power[j] / max((dx * dx + dy * dy) + dz * dz, min_d2)
-    return j, wj / max(tot, 1e-300)
+    return j, w[j] / max(tot, 1e-300)
 
 
 def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, power, centres, min_d2, cdf, pmf,
@@ -150,6 +145,7 @@ def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, 
     by ``shadow_scale``), the path row and the contribution ``throughput * weight * cos / pi`` it adds when the
     ray is unoccluded. Returns the number of shadow rays."""
     k = 0
+    w = np.empty(len(power))
     for i in range(len(rows)):
         dx, dy, dz = d64[i, 0], d64[i, 1], d64[i, 2]
         s = (ng_raw[i, 0] * dx + ng_raw[i, 2] * dz) + ng_raw[i, 1] * dy
@@ -163,7 +159,7 @@ def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, 
         t0, t1, t2 = thr[i, 0] * alb[i, 0], thr[i, 1] * alb[i, 1], thr[i, 2] * alb[i, 2]
         thr_out[i, 0], thr_out[i, 1], thr_out[i, 2] = t0, t1, t2
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-        j, pmf_j = _choose_light(px, py, pz, u_sel[i], per_point, power, centres, min_d2, cdf, pmf)
+        j, pmf_j = _choose_light(px, py, pz, u_sel[i], per_point, power, centres, min_d2, cdf, pmf, w)
         if j < n_point:
             yx, yy, yz = point_pos[j, 0], point_pos[j, 1], point_pos[j, 2]
             ex, ey, ez = yx - px, yy - py, yz - pz
@@ -219,6 +215,26 @@ def _add_unoccluded(sample, rows, contrib, occluded):
             r = rows[i]
             for c in range(3):
                 sample[r, c] += contrib[i, c]
+
+
+def _shade_point_lights(p, nrm, light_pos, light_int, vis, min_d2, out):
+    """:func:`suite.core.shading.shade_point_lights` for an (N, 1) G-buffer of albedo 1 without emission: per
+    fragment the sum over lights of ``visible * max(n . l / |l|, 0) / d^2 * I`` (``d^2`` clamped to ``min_d2``),
+    times 1/pi, rounded to float32 (``einsum("hwc,hwc->hw")`` adds as ``(x + z) + y``)."""
+    inv_pi = 1.0 * INV_PI
+    for i in range(len(p)):
+        o0, o1, o2 = 0.0, 0.0, 0.0
+        n0, n1, n2 = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+        for li in range(len(light_pos)):
+            tx, ty, tz = light_pos[li, 0] - p[i, 0], light_pos[li, 1] - p[i, 1], light_pos[li, 2] - p[i, 2]
+            dist2 = max((tx * tx + tz * tz) + ty * ty, min_d2)
+            dist = np.sqrt(dist2)
+            cos = max(((n0 * tx + n2 * tz) + n1 * ty) / max(dist, 1e-300), 0.0)
+            f = (cos if vis[i, li] else 0.0) / max(dist2, 1e-300)
+            o0 += f * light_int[li, 0]
+            o1 += f * light_int[li, 1]
+            o2 += f * light_int[li, 2]
+        out[i, 0], out[i, 1], out[i, 2] = np.float32(o0 * inv_pi), np.float32(o1 * inv_pi), np.float32(o2 * inv_pi)
 
 
 # ------------------------------------------------------------------------------------------ depth peeling
@@ -284,7 +300,7 @@ def jit():
         global _offset_origin, _choose_light, _past
         _offset_origin, _choose_light, _past = j(_offset_origin), j(_choose_light), j(_past)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
-                                                 _peel_next)}
+                                                 _peel_next, _shade_point_lights)}
     return _compiled
 
 
@@ -307,3 +323,9 @@ def warm_up() -> None:
                            *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f32.copy(), f32.copy(),
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
+    k["_shade_point_lights"](f64, f64, f64, f64, np.zeros((1, 1), np.bool_), 1.0, f32.copy())
+    k["_peel_hits"](np.zeros(1, np.int32), one32, one32, one32, i64, b, True, 0, np.float32(1), np.zeros((1, 1), np.float32),
+                    np.zeros((1, 1), np.int64), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32), f32, f32,
+                    i64.copy(), one32.copy(), f32.copy(), f32.copy())
+    k["_peel_next"](np.zeros(1, np.int64), one32, np.float32(1), f32, f32, i64.copy(), one32.copy(), f32.copy(),
+                    f32.copy())

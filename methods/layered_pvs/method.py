@@ -134,8 +134,9 @@ class LayeredPVS(Method):
         self.reset()
 
     def prepare(self, scene, tracer):
-        """Offline: which scene vertices share a position (the PVS patch references each position once)."""
-        return {"canonical": _canonical_vertices(scene.positions)}
+        """Offline: which scene vertices share a position (the PVS patch references each position once), and the
+        scene's extent (Algorithm 1's corner offset scales with it)."""
+        return {"canonical": _canonical_vertices(scene.positions), "extent": float(scene.extent)}
 
     def restore(self, prepared) -> None:
         super().restore(prepared)
@@ -160,7 +161,9 @@ class LayeredPVS(Method):
         """``scene.extent`` (the diagonal of the rest positions' box: fixed per scene), computed once per scene
         rather than by a pass over every vertex in each update's ``pvs`` stage."""
         if self._extent is None or self._extent[0] is not scene:
-            self._extent = (scene, float(scene.extent))
+            pre = (self.prepared or {}).get("extent")
+            # prepared data cached before it held the extent: computed here, once per instance
+            self._extent = (scene, float(pre) if pre is not None else float(scene.extent))
         return self._extent[1]
 
     def _layer_view(self, ctx, pose) -> server.LayerView:

@@ -348,16 +348,81 @@ def _cosine_hemisphere(n, u):
 
 
 def direct_illumination(scene, tracer, frag: Fragments, t_s: float, area_samples: int, seed: int) -> np.ndarray:
-    """Demodulated direct illumination (N, 3) at the fragments from the suite's direct-lighting kernels
+    """Demodulated direct illumination (N, 3) at the fragments, the estimate of the suite's direct-lighting kernels
     (:func:`suite.core.shading.compose_direct`, host path): every point light with its own shadow ray, area
     lights with ``area_samples`` stratified samples. The fragments are shaded as an (N, 1) G-buffer of albedo 1
-    without emission."""
+    without emission.
+
+    On a host tracer the point lights take the suite's compiled shadow rays (:class:`suite.core.trace.raygen
+    .ShadowRays`, the same rays) and one compiled shading pass (:mod:`methods.layered_pvs.kernels`, the bits of
+    ``shade_point_lights``) instead of ``compose_direct``'s thread pool and (N, 1, 3) numpy passes, and the scene
+    extent behind the light clamp distance is taken once per scene; a tracer with a device path takes
+    ``compose_direct`` itself (:func:`direct_illumination_reference`)."""
+    if getattr(tracer, "device", None) is not None:
+        return direct_illumination_reference(scene, tracer, frag, t_s, area_samples, seed)
+    from suite.core.trace.raygen import ShadowRays
+
+    n = len(frag.position)
+    lights = scene.lights_at(t_s)
+    min_d = shading.min_light_distance(SimpleNamespace(extent=_scene_extent(scene)))
+    position = np.ascontiguousarray(frag.position, np.float64)
+    normal = np.ascontiguousarray(frag.normal, np.float64)
+    geo_normal = np.ascontiguousarray(frag.geo_normal, np.float64)
+    vis = np.zeros((n, len(lights)), bool)
+    shift = getattr(tracer, "shift", None)
+    soa = bool(getattr(tracer, "soa_origins", False))
+    local = hasattr(tracer, "occluded_local")
+    for c0 in range(0, n if len(lights) else 0, DIRECT_CHUNK_RAYS):
+        rays = ShadowRays(position, geo_normal, np.arange(c0, min(c0 + DIRECT_CHUNK_RAYS, n)), shift, soa)
+        for li, light in enumerate(lights):
+            o, d, length, pixel = rays.toward(light.position, shading.SHADOW_TMAX_SCALE)
+            if local:
+                occ = tracer.occluded_local(o, d, length)
+            else:   # a tracer outside the suite's hierarchy: world-space rays, as point_light_visibility sends them
+                o_world = (o.T if soa else o).astype(np.float64) + (0.0 if shift is None else shift)
+                occ = tracer.occluded(o_world, d, 0.0, length)
+            vis[pixel, li] = ~occ
+    out = np.empty((n, 3), np.float32)
+    light_pos = np.array([lt.position for lt in lights], np.float64).reshape(-1, 3)
+    light_int = np.array([lt.intensity for lt in lights], np.float64).reshape(-1, 3)
+    kernels.jit()["_shade_point_lights"](position, normal, light_pos, light_int, vis, float(min_d ** 2), out)
+    if any(m.is_emissive for m in scene.materials):
+        area = shading.AreaLights(scene, t_s)
+        if len(area):
+            g = _fragment_gbuffer(frag)
+            out = out + shading.area_light_radiance(g, area, tracer, samples=area_samples, seed=seed,
+                                                    min_distance=min_d).reshape(n, 3)
+    return out
+
+
+DIRECT_CHUNK_RAYS = 1 << 20    # shadow rays per light and query (the suite's point_light_visibility chunk_rays)
+
+_extent_cache: list = []       # [(scene, extent)] of the last scene
+
+
+def _scene_extent(scene) -> float:
+    """``scene.extent`` (the rest positions' box diagonal, fixed per scene; a pass over every vertex) once per
+    scene."""
+    if not _extent_cache or _extent_cache[0][0] is not scene:
+        _extent_cache[:] = [(scene, float(scene.extent))]
+    return _extent_cache[0][1]
+
+
+def _fragment_gbuffer(frag: Fragments):
     n = len(frag.position)
     col = lambda a: np.ascontiguousarray(a, np.float64).reshape(n, 1, -1)  # noqa: E731
-    g = SimpleNamespace(depth=np.zeros((n, 1)), valid=np.ones((n, 1), bool), position=col(frag.position),
-                        normal=col(frag.normal), geo_normal=col(frag.geo_normal), albedo=np.ones((n, 1, 3)),
-                        emission=np.zeros((n, 1, 3)))
-    return shading.compose_direct(shading, scene, g, tracer, t_s, area_samples, seed).reshape(n, 3)
+    return SimpleNamespace(depth=np.zeros((n, 1)), valid=np.ones((n, 1), bool), position=col(frag.position),
+                           normal=col(frag.normal), geo_normal=col(frag.geo_normal), albedo=np.ones((n, 1, 3)),
+                           emission=np.zeros((n, 1, 3)))
+
+
+def direct_illumination_reference(scene, tracer, frag: Fragments, t_s: float, area_samples: int,
+                                  seed: int) -> np.ndarray:
+    """:func:`direct_illumination` through :func:`suite.core.shading.compose_direct` itself (the device path, and
+    the reference of the host one)."""
+    n = len(frag.position)
+    return shading.compose_direct(shading, scene, _fragment_gbuffer(frag), tracer, t_s, area_samples,
+                                  seed).reshape(n, 3)
 
 
 def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
