@@ -77,7 +77,7 @@ def camera_rays(pose, fov_deg: float, width: int, height: int, dtype=np.float32)
     forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
     tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
     dirs = np.empty((height * width, 3), dtype)
-    _kernels()[4](forward, right, up, tan_x, width / height, int(width), int(height), dirs)
+    _kernels()[3](forward, right, up, tan_x, width / height, int(width), int(height), dirs)
     origins = np.empty_like(dirs)
     origins[:] = np.asarray(pose.position, dtype)
     return origins, dirs
@@ -314,7 +314,7 @@ def _kernels():
 
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
         _hit_geometry_jit = jit(_hit_geometry)
-        _compiled = (jit(_attributes), jit(_facing), jit(_pixels), None, jit(_camera))
+        _compiled = (jit(_attributes), jit(_facing), jit(_pixels), jit(_camera))
     return _compiled
 
 
