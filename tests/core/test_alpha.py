@@ -204,6 +204,46 @@ def test07c_gathered_rays_are_the_rows_of_fancy_indexing():
     assert np.array_equal(go, o.T[idx])
 
 
+def test07e_the_compiled_retrace_step_is_step_past_in_both_origin_layouts():
+    """The re-trace rays start at alpha.step_past of the hit (its float64 steps), rounded to float32; rays with no
+    length left end as misses; the re-traced hits come back as distances from the original origins."""
+    from suite.core.trace.alpha import step_past
+    from suite.core.trace.base import _retrace_jit
+
+    setup, scatter = _retrace_jit()
+    rng = np.random.default_rng(5)
+    n = 64
+    o = (rng.random((n, 3)) * 200 - 100).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    d = (d / np.linalg.norm(d, axis=1)[:, None]).astype(np.float32)
+    t = (rng.random(n) * 50).astype(np.float32)
+    length = (t + rng.random(n).astype(np.float32) * 5).astype(np.float32)
+    length[::7] = t[::7]  # no length left past these hits
+    todo = np.arange(0, n, 2)
+    start = step_past(o[todo], d[todo], t[todo].astype(np.float64))
+    keep = np.float64(1) * length[todo] - start > 0
+    for soa in (False, True):
+        tt, prim = t.copy(), np.arange(n, dtype=np.int32)
+        u, v = np.full(n, 0.25, np.float32), np.full(n, 0.5, np.float32)
+        idx, s = todo.copy(), np.empty(len(todo))
+        o_next = np.empty((3, len(todo)) if soa else (len(todo), 3), np.float32)
+        d_next, rem = np.empty((len(todo), 3), np.float32), np.empty(len(todo), np.float32)
+        k = setup(np.ascontiguousarray(o.T) if soa else o, soa, d, length, tt, prim, u, v, idx, s, o_next, d_next, rem)
+        assert k == keep.sum() and np.array_equal(idx[:k], todo[keep]) and np.array_equal(s[:k], start[keep])
+        expected_o = (o[todo].astype(np.float64) + d[todo].astype(np.float64) * start[:, None]).astype(np.float32)
+        assert np.array_equal(o_next[:, :k].T if soa else o_next[:k], expected_o[keep])
+        assert np.array_equal(d_next[:k], d[todo][keep])
+        assert np.array_equal(rem[:k], (length[todo].astype(np.float64) - start).astype(np.float32)[keep])
+        gone = todo[~keep]
+        assert np.all(np.isinf(tt[gone])) and np.all(prim[gone] == -1) and np.all(u[gone] == 0) and np.all(v[gone] == 0)
+        p2 = np.where(np.arange(k) % 2 == 0, 9, -1).astype(np.int32)
+        t2 = np.full(k, 1.5, np.float32)
+        scatter(idx[:k], s[:k], t2, p2, t2, t2, tt, prim, u, v)
+        hit = idx[:k][p2 >= 0]
+        assert np.array_equal(tt[hit], (s[:k][p2 >= 0] + 1.5).astype(np.float32))
+        assert np.all(np.isinf(tt[idx[:k][p2 < 0]])) and np.all(prim[idx[:k]] == p2)
+
+
 def test08_the_compiled_alpha_test_gives_the_bits_of_the_numpy_reference():
     """AlphaTest.transparent (one numba pass per alpha-tested material) against the numpy opacity lookup and
     comparison: random hits on alpha-tested and other faces, misses, barycentrics outside the triangle (the texture

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from suite.errors import UserError
+from suite.core.trace.alpha import ALPHA_STEP_ULPS
+from suite.core.trace.robust import FLOAT_SCALE
 
 
 # The largest ray length handed to a backend (Embree's float32 "far" must stay finite).
@@ -187,30 +189,31 @@ class Tracer:
         past it, until the hit is opaque, the ray leaves its interval or ``MAX_ALPHA_LAYERS`` are crossed.
         ``t`` is relative to the tracing-frame origins ``o``; every re-traced ray counts in ``rays_intersect``.
         ``closest`` is the closest-hit query of the re-traces (:meth:`_closest`, or a sub-scene's)."""
-        from suite.core.trace.alpha import MAX_ALPHA_LAYERS, step_past
+        from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
         closest = self._closest if closest is None else closest
-        rows = o.T if self.soa_origins else o  # (N, 3) view either way
-        todo = np.nonzero(self._alpha.transparent(prim, u, v))[0]
+        setup, scatter = _retrace_jit()
+        todo = np.flatnonzero(self._alpha.transparent(prim, u, v))
         for _ in range(MAX_ALPHA_LAYERS):
             if len(todo) == 0:
                 break
-            start = step_past(rows[todo], d[todo], t[todo].astype(np.float64))
-            remaining = length[todo].astype(np.float64) - start
-            gone = remaining <= 0
-            if gone.any():
-                out = todo[gone]
-                t[out], prim[out], u[out], v[out] = np.inf, -1, 0.0, 0.0
-                todo, start, remaining = todo[~gone], start[~gone], remaining[~gone]
-                if len(todo) == 0:
-                    break
-            o_next = (rows[todo].astype(np.float64) + d[todo].astype(np.float64) * start[:, None]).astype(np.float32)
-            if self.soa_origins:
-                o_next = np.ascontiguousarray(o_next.T)
-            self.counters["rays_intersect"] += len(todo)
-            t2, p2, u2, v2 = closest(o_next, np.ascontiguousarray(d[todo]), remaining.astype(np.float32))
-            t[todo] = np.where(p2 >= 0, start + t2, np.inf).astype(np.float32)
-            prim[todo], u[todo], v[todo] = p2, u2, v2
+            # Origins just past the transparent hits (alpha.step_past, in its float64 steps); rays left with no
+            # length end here as misses (setup writes those and keeps the others first in ``todo``).
+            m = len(todo)
+            start = np.empty(m, np.float64)
+            o_next = np.empty((3, m) if self.soa_origins else (m, 3), np.float32)
+            d_next = np.empty((m, 3), np.float32)
+            remaining = np.empty(m, np.float32)
+            kept = setup(o, self.soa_origins, d, length, t, prim, u, v, todo, start, o_next, d_next, remaining)
+            if kept == 0:
+                break
+            if kept < m:
+                todo, start, remaining = todo[:kept], start[:kept], remaining[:kept]
+                o_next = np.ascontiguousarray(o_next[:, :kept] if self.soa_origins else o_next[:kept])
+                d_next = d_next[:kept]
+            self.counters["rays_intersect"] += kept
+            t2, p2, u2, v2 = closest(o_next, d_next, remaining)
+            scatter(todo, start, t2, p2, u2, v2, t, prim, u, v)
             todo = todo[self._alpha.transparent(p2, u2, v2)]
         return t, prim, u, v
 
@@ -359,16 +362,20 @@ def alpha_box(points: np.ndarray, all_points: np.ndarray):
     return np.stack([points.min(axis=0).astype(np.float64) - pad, points.max(axis=0).astype(np.float64) + pad])
 
 
-_box_kernels = None
+_kernels = None
 
 
-def _box_mask(o, d, length, lo, hi, soa, blocked, out):
-    """``out[i]``: ray i is not ``blocked`` (where ``blocked`` is not empty) and its segment o + t d, 0 <= t <= length
-    (padded), crosses the box [lo, hi] (float32 ``lo``, ``hi``). A slab test in float32 with reciprocal directions:
-    a filter only, whose rounding (a few float32 ULPs of the distances) lies far inside the box's padding. A zero
-    direction component keeps the segment in its slab or out of it."""
+def _box_hits(o, d, length, lo, hi, soa, blocked, out) -> int:
+    """Writes to ``out`` the indices of the rays that are not ``blocked`` (where ``blocked`` is not empty) and whose
+    segment o + t d, 0 <= t <= length (padded), crosses the box [lo, hi] (float32 ``lo``, ``hi``); returns their
+    count. A slab test in float32 with reciprocal directions: a filter only, whose rounding (a few float32 ULPs of
+    the distances) lies far inside the box's padding. A zero direction component keeps the segment in its slab or
+    out of it."""
     skip = blocked.shape[0] > 0
+    k = 0
     for i in range(d.shape[0]):
+        if skip and blocked[i]:
+            continue
         t0 = np.float32(0.0)
         t1 = length[i] * np.float32(1.0 + ALPHA_BOX_PAD) + np.float32(1e-6)
         ok = True
@@ -383,7 +390,55 @@ def _box_mask(o, d, length, lo, hi, soa, blocked, out):
             b = (hi[c] - oc) * inv
             t0 = max(t0, min(a, b))
             t1 = min(t1, max(a, b))
-        out[i] = ok and t0 <= t1 and not (skip and blocked[i])
+        if ok and t0 <= t1:
+            out[k] = i
+            k += 1
+    return k
+
+
+def _retrace_setup(o, soa, d, length, t, prim, u, v, todo, start, o_next, d_next, remaining) -> int:
+    """The re-trace rays of :meth:`Tracer._skip_transparent` for the hits ``todo`` (transparent), in one pass:
+    ``start`` = :func:`suite.core.trace.alpha.step_past` of each hit (its float64 steps), origins ``o + d start``
+    rounded to float32 (in ``o``'s layout), ``remaining = length - start``. Rays with no length left become misses
+    in (t, prim, u, v); the others are compacted to the front of ``todo`` and the outputs, and their count returned."""
+    k = 0
+    for j in range(todo.shape[0]):
+        i = todo[j]
+        ti = np.float64(t[i])
+        p = 0.0
+        for c in range(3):
+            oc = o[c, i] if soa else o[i, c]
+            p = max(p, abs(np.float64(oc) + np.float64(d[i, c]) * ti))
+        scale = np.float32(max(p, abs(ti)))
+        s = ti + max(ALPHA_STEP_ULPS * np.float64(np.spacing(scale)), FLOAT_SCALE)
+        rem = np.float64(length[i]) - s
+        if rem <= 0:
+            t[i], prim[i], u[i], v[i] = np.inf, -1, 0.0, 0.0
+            continue
+        todo[k] = i
+        start[k] = s
+        remaining[k] = np.float32(rem)
+        for c in range(3):
+            oc = o[c, i] if soa else o[i, c]
+            x = np.float32(np.float64(oc) + np.float64(d[i, c]) * s)
+            if soa:
+                o_next[c, k] = x
+            else:
+                o_next[k, c] = x
+            d_next[k, c] = d[i, c]
+        k += 1
+    return k
+
+
+def _retrace_scatter(todo, start, t2, p2, u2, v2, t, prim, u, v):
+    """The re-traced hits back into (t, prim, u, v): distances from the original origins (``start + t2``, float32),
+    misses at infinity."""
+    for j in range(todo.shape[0]):
+        i = todo[j]
+        t[i] = np.float32(start[j] + np.float64(t2[j])) if p2[j] >= 0 else np.float32(np.inf)
+        prim[i] = p2[j]
+        u[i] = u2[j]
+        v[i] = v2[j]
 
 
 def _gather_rays(o, d, length, idx, soa, o_out, d_out, len_out):
@@ -399,14 +454,23 @@ def _gather_rays(o, d, length, idx, soa, o_out, d_out, len_out):
         len_out[k] = length[i]
 
 
-def _box_jit():
-    global _box_kernels
-    if _box_kernels is None:
+def _compiled():
+    """The compiled ray kernels of this module: (box test, gather, re-trace setup, re-trace scatter)."""
+    global _kernels
+    if _kernels is None:
         import numba
 
         jit = numba.njit(cache=True, nogil=True)
-        _box_kernels = (jit(_box_mask), jit(_gather_rays))
-    return _box_kernels
+        _kernels = (jit(_box_hits), jit(_gather_rays), jit(_retrace_setup), jit(_retrace_scatter))
+    return _kernels
+
+
+def _box_jit():
+    return _compiled()[:2]
+
+
+def _retrace_jit():
+    return _compiled()[2:]
 
 
 _NO_MASK = np.zeros(0, bool)
@@ -416,10 +480,10 @@ def box_candidates(o, d, length, box, soa: bool, blocked=None) -> np.ndarray:
     """Indices of the tracing-frame rays (origins (3, N) if ``soa`` else (N, 3), unit directions (N, 3), lengths) whose
     segments cross ``box`` ((2, 3) float64, padded): a conservative test, a segment that meets anything inside the box
     is among them. ``blocked``: rays to leave out."""
-    mask = np.empty(len(d), bool)
-    _box_jit()[0](o, d, length, np.ascontiguousarray(box[0], np.float32), np.ascontiguousarray(box[1], np.float32),
-                  soa, _NO_MASK if blocked is None else np.ascontiguousarray(blocked, bool), mask)
-    return np.flatnonzero(mask)
+    idx = np.empty(len(d), np.int64)
+    k = _box_jit()[0](o, d, length, np.ascontiguousarray(box[0], np.float32), np.ascontiguousarray(box[1], np.float32),
+                      soa, _NO_MASK if blocked is None else np.ascontiguousarray(blocked, bool), idx)
+    return idx[:k]
 
 
 def gather_rays(o, d, length, idx, soa: bool):

@@ -46,11 +46,31 @@ class EmbreeGroup:
             return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32), \
                 np.zeros(n, np.float32)
         res = self.escene.run(o, d, dists=length, output=1)
-        local = np.asarray(res["primID"], np.int64)
-        hit = local >= 0
-        prim = np.where(hit, self.faces[np.where(hit, local, 0)], -1).astype(np.int32)
-        t = np.where(hit, res["tfar"], np.inf).astype(np.float32)
-        return t, prim, np.where(hit, res["u"], 0.0).astype(np.float32), np.where(hit, res["v"], 0.0).astype(np.float32)
+        t, prim, u, v = (np.array(res[k], dt) for k, dt in (("tfar", np.float32), ("primID", np.int32),
+                                                             ("u", np.float32), ("v", np.float32)))
+        _group_hits()(prim, self.faces, t, u, v)
+        return t, prim, u, v
+
+
+_group_hits_kernel = None
+
+
+def _group_hits():
+    """In place: the group's primitive ids mapped to global faces, misses normalised (t = inf, u = v = 0) in one
+    compiled pass."""
+    global _group_hits_kernel
+    if _group_hits_kernel is None:
+        import numba
+
+        def kernel(prim, faces, t, u, v):
+            for i in range(prim.shape[0]):
+                if prim[i] >= 0:
+                    prim[i] = faces[prim[i]]
+                else:
+                    prim[i], t[i], u[i], v[i] = -1, np.inf, 0.0, 0.0
+
+        _group_hits_kernel = numba.njit(cache=True, nogil=True)(kernel)
+    return _group_hits_kernel
 
 
 class EmbreeTracer(Tracer):
