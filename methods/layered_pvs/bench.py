@@ -1,8 +1,13 @@
-"""``splitbench bench layered_pvs``: server stages against the backend's raw ray rate (``<stage>_ratio``: the time
-the backend alone takes for the stage's own rays, replayed, over the stage's time; 1 = the stage is pure tracing,
-below it the share of shading, sampling and bookkeeping in numpy), codec throughput, client
+"""``splitbench bench layered_pvs``: server stages against the backend's raw ray rate, codec throughput, client
 reprojection cost, how they grow with pixels and layers, and the report's images (layers, packed texture, client
 frame, difference). Stores ``<results>/bench/layered_pvs.json`` and PNGs in ``<results>/bench/layered_pvs/``.
+
+``<stage>_ratio`` is the time the backend alone takes for the stage's own rays over the stage's time (1 = the stage
+is pure tracing; below it, the share of shading, sampling and bookkeeping). The rays are recorded in one update
+(:class:`RecordingTracer`, outside every timed run); the stages are then timed in ``--repeats`` further updates with
+the plain tracer (the same rays: the update is deterministic), interleaved with the replay of each stage's rays on
+the backend's raw entry points (``raw_intersect`` / ``raw_occluded`` on rays already in its frame and layout; a
+backend without them replays through the suite's queries, and the row says so); medians of the repeats.
 
 One update is made outside the harness with :class:`LocalContext` (stages timed with ``perf_counter``).
 """
@@ -26,23 +31,40 @@ DEFAULT_PARAMS = {"update_fps": 5.5, "client_fps": 60.0, "max_in_flight": 1, "la
                   "video_crf": 25.0, "video_preset": "veryfast", "jpeg_quality": 25, "mask_codec": "quadtree",
                   "subset_peeling": False, "key_interval": 10, "depth_tol": 0.01, "hole_fill": False,
                   "exposure": 1.0}
+SERVER_STAGES = ("pvs", "layers", "path_trace")
 
 
 class RecordingTracer:
-    """Wraps a tracer: forwards every query and keeps its rays, to replay them on the raw backend."""
+    """Wraps a tracer: forwards every query and keeps its rays in the tracing frame, ready to replay on the raw
+    backend (``("i" | "o", origins (N, 3), directions, lengths)``). Exposes ``occluded_local`` exactly when the
+    wrapped tracer does, so the method takes the same code path as with the plain tracer."""
 
     def __init__(self, tracer):
         self.t = tracer
         self.scene, self.shift, self.counters = tracer.scene, getattr(tracer, "shift", None), tracer.counters
+        self.soa_origins = bool(getattr(tracer, "soa_origins", False))
         self.log = []
+        if hasattr(tracer, "occluded_local"):
+            self.occluded_local = self._occluded_local
+
+    def _keep(self, kind, o, d, tmin, tmax):
+        from suite.core.trace.base import as_rays
+
+        ro, rd, _, rlen = as_rays(np.array(o), np.array(d), np.array(tmin), np.array(tmax), self.shift)
+        self.log.append((kind, ro, rd.copy(), rlen.copy()))
 
     def intersect(self, o, d, tmin=0.0, tmax=np.inf):
-        self.log.append(("i", np.array(o), np.array(d), np.array(tmin), tmax))
+        self._keep("i", o, d, tmin, tmax)
         return self.t.intersect(o, d, tmin, tmax)
 
     def occluded(self, o, d, tmin=0.0, tmax=np.inf):
-        self.log.append(("o", np.array(o), np.array(d), np.array(tmin), np.array(tmax)))
+        self._keep("o", o, d, tmin, tmax)
         return self.t.occluded(o, d, tmin, tmax)
+
+    def _occluded_local(self, o, d, length):
+        self.log.append(("o", np.ascontiguousarray(o.T if self.soa_origins else o, np.float32), np.array(d),
+                         np.array(length)))
+        return self.t.occluded_local(o, d, length)
 
 
 class LocalContext:
@@ -105,28 +127,56 @@ def one_update(scene, tracer, params, resolution, t_s, later_s):
     return ctx, cctx, cli, img
 
 
-def _raw_rate(tracer, log) -> tuple[int, float]:
-    rays, t0 = 0, time.perf_counter()
-    for kind, o, d, tmin, tmax in log:
-        (tracer.intersect if kind == "i" else tracer.occluded)(o, d, tmin, tmax)
-        rays += len(d)
-    return rays, time.perf_counter() - t0
+def _replay(tracer, log):
+    """(rays, replay function) for a stage's recorded rays: the backend's raw entry points where it has them (embreex
+    overwrites the lengths it is given: each call gets a fresh copy, made outside the backend call), else the
+    suite's queries on rays already in the tracing frame; and whether the replay is raw."""
+    rays = int(sum(len(d) for _, _, d, _ in log))
+    raw = hasattr(tracer, "raw_intersect") and hasattr(tracer, "raw_occluded")
+    if raw:
+        calls = [(tracer.raw_intersect if kind == "i" else tracer.raw_occluded, o, d, length)
+                 for kind, o, d, length in log]
+    else:
+        shift = np.zeros(3) if getattr(tracer, "shift", None) is None else tracer.shift
+        calls = [(lambda o, d, length, k=kind: (tracer.intersect if k == "i" else tracer.occluded)(
+            o.astype(np.float64) + shift, d, 0.0, length), o, d, length) for kind, o, d, length in log]
+
+    def replay() -> float:
+        lengths = [length.copy() for _, _, _, length in calls]
+        t0 = time.perf_counter()
+        for (fn, o, d, _), length in zip(calls, lengths):
+            fn(o, d, length)
+        return time.perf_counter() - t0
+
+    return rays, replay, raw
 
 
-def server_rows(scene, tracer, params, resolutions, layer_counts, t_s):
+def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3):
     rows = []
     for res in resolutions:
         for L in layer_counts:
+            p = {**params, "layers": L}
             rec = RecordingTracer(tracer)
-            ctx, cctx, cli, _ = one_update(scene, rec, {**params, "layers": L}, res, t_s, t_s + 0.1)
+            ctx, _, _, _ = one_update(scene, rec, p, res, t_s, t_s + 0.1)  # records the rays (and warms up)
+            replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
+            stage_ms = {stage: [] for stage in SERVER_STAGES}
+            raw_ms = {stage: [] for stage in SERVER_STAGES}
+            for _ in range(max(int(repeats), 1)):  # interleaved: machine noise hits both alike
+                ctx, cctx, cli, _ = one_update(scene, tracer, p, res, t_s, t_s + 0.1)
+                for stage in SERVER_STAGES:
+                    stage_ms[stage].append(ctx.stage_ms[stage])
+                    raw_ms[stage].append(1e3 * replays[stage][1]())
             per_stage = {}
-            for stage in ("pvs", "layers", "path_trace"):
-                n, raw_s = _raw_rate(tracer, ctx.stage_log[stage])
+            for stage in SERVER_STAGES:
+                n = replays[stage][0]
                 per_stage[f"{stage}_rays"] = n
-                per_stage[f"{stage}_ratio"] = (raw_s * 1e3) / ctx.stage_ms[stage] if n else float("nan")
-            n_rays = sum(per_stage[f"{s}_rays"] for s in ("pvs", "layers", "path_trace"))
-            rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, **per_stage,
-                         **{f"{k}_ms": round(v, 2) for k, v in ctx.stage_ms.items()},
+                per_stage[f"{stage}_ratio"] = float(np.median(raw_ms[stage]) / np.median(stage_ms[stage])) \
+                    if n else float("nan")
+                ctx.stage_ms[stage] = float(np.median(stage_ms[stage]))
+            n_rays = sum(per_stage[f"{s}_rays"] for s in SERVER_STAGES)
+            rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, "repeats": int(repeats),
+                         "raw": "backend raw entry points" if replays["pvs"][2] else "suite queries (no raw entry)",
+                         **per_stage, **{f"{k}_ms": round(v, 2) for k, v in ctx.stage_ms.items()},
                          "client_decode_ms": cctx.stage_ms.get("decode"), "client_peel_ms": cctx.stage_ms.get("peel"),
                          "client_render_ms": cctx.stage_ms.get("render"),
                          "render_ms_per_mpix": cctx.stage_ms.get("render") / (res[0] * res[1] / 1e6),
@@ -199,8 +249,11 @@ def run(argv=None) -> dict:
     ap.add_argument("--resolutions", default="96x54,160x90")
     ap.add_argument("--layers", default="2,4,8")
     ap.add_argument("--codec-size", type=int, default=512, help="side of the codec benchmark's mask (pixels)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed updates per row (median), each after one recording")
     ap.add_argument("--out", default="results")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        raise UserError("--repeats must be >= 1")
     from suite.harness import runner
 
     try:
@@ -215,7 +268,7 @@ def run(argv=None) -> dict:
     _warm_up()
     t_s = 0.5 * scene.camera.duration_s
     out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS,
-           "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s),
+           "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s, args.repeats),
            "codecs": codec_rows(args.codec_size)}
     # Images at the largest resolution: the client 0.15 s after the update, against the update rendered there.
     big = res[-1]

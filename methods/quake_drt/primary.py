@@ -339,30 +339,9 @@ def _surface_pass(positions, normals, faces, face_material, albedo_table, emissi
             for k in range(3):
                 albedo[i, k] = np.float64(albedo_table[m, k])
             continue
-        uvx = (np.float64(uvs[f0, 0]) * b0 + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
-        uvy = (np.float64(uvs[f0, 1]) * b0 + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
-        h, w, c, off = tex_shape[slot, 0], tex_shape[slot, 1], tex_shape[slot, 2], tex_shape[slot, 3]
-        x = uvx * w - 0.5
-        y = uvy * h - 0.5
-        x0, y0 = np.floor(x), np.floor(y)
-        fx, fy = x - x0, y - y0
-        # Repeating texel indices (numpy's floor modulo); an integer division only where the texel lies outside
-        # the first repeat, and the neighbour wraps by comparison (the same indices, fewer divisions).
-        x0i, y0i = np.int64(x0), np.int64(y0)
-        if x0i < 0 or x0i >= w:
-            x0i %= w
-        if y0i < 0 or y0i >= h:
-            y0i %= h
-        x1i = x0i + 1 if x0i + 1 < w else 0
-        y1i = y0i + 1 if y0i + 1 < h else 0
+        rgb = _gbuffer._texel_jit(uvs, f0, f1, f2, b0, b1, b2, slot, tex_shape, tex_data)
         for k in range(3):
-            ch = k if c > 1 else 0
-            t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
-            t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
-            t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
-            t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
-            val = (((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11
-            albedo[i, k] = np.float64(np.float32(val))
+            albedo[i, k] = np.float64(rgb[k])
 
 
 _compiled = None

@@ -152,6 +152,7 @@ def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 _compiled = None  # the numba versions of the per-hit passes below, compiled on first use
 _hit_geometry_jit = None  # the compiled _hit_geometry, which the compiled passes call (bound before they compile)
+_texel_jit = None  # the compiled _texel, likewise
 
 
 def _hit_geometry(positions, normals, f0, f1, f2, a, b, c, use_ray, rox, roy, roz, rdx, rdy, rdz):
@@ -189,18 +190,6 @@ def _hit_geometry(positions, normals, f0, f1, f2, a, b, c, use_ray, rox, roy, ro
     return px, py, pz, gx, gy, gz, nx, ny, nz
 
 
-def _attributes(positions, normals, faces, w0, w1, w2, ray_o, ray_d, use_ray, p, ng, ns):
-    """Per hit of a list: :func:`_hit_geometry` into (N, 3) float64 rows."""
-    for i in range(len(w0)):
-        r = _hit_geometry_jit(positions, normals, faces[i, 0], faces[i, 1], faces[i, 2], w0[i], w1[i], w2[i],
-                              use_ray, ray_o[i, 0] if use_ray else 0.0, ray_o[i, 1] if use_ray else 0.0,
-                              ray_o[i, 2] if use_ray else 0.0, ray_d[i, 0] if use_ray else 0.0,
-                              ray_d[i, 1] if use_ray else 0.0, ray_d[i, 2] if use_ray else 0.0)
-        p[i, 0], p[i, 1], p[i, 2] = r[0], r[1], r[2]
-        ng[i, 0], ng[i, 1], ng[i, 2] = r[3], r[4], r[5]
-        ns[i, 0], ns[i, 1], ns[i, 2] = r[6], r[7], r[8]
-
-
 def _facing(ng, ns, dirs, ng_view, ns_view, front):
     """Per hit: normals turned toward the viewer (np.sign of n . d, 0 counted as +1) and whether ``ng`` faced it."""
     for i in range(len(ng)):
@@ -215,6 +204,65 @@ def _facing(ng, ns, dirs, ng_view, ns_view, front):
             ns_view[i, k] = -ns[i, k] if back else ns[i, k]
 
 
+def _texel(uvs, f0, f1, f2, a, b1, b2, slot, tex_shape, tex_data):
+    """The albedo texture ``slot`` of :func:`texture_table` at a hit on the face with vertices f0, f1, f2 and float64
+    barycentrics a, b1, b2, as float32 RGB: UVs interpolated as :func:`_materials_reference` does, then
+    :func:`lookup_texture` (bilinear, repeating) operation for operation."""
+    uvx = (np.float64(uvs[f0, 0]) * a + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
+    uvy = (np.float64(uvs[f0, 1]) * a + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
+    h, w, c, off = tex_shape[slot, 0], tex_shape[slot, 1], tex_shape[slot, 2], tex_shape[slot, 3]
+    x = uvx * w - 0.5
+    y = uvy * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    # Repeating texel indices (numpy's floor modulo; numba's integer % floors too): an integer division only where
+    # the texel lies outside the first repeat, and the neighbour wraps by comparison (the same indices).
+    x0i, y0i = np.int64(x0), np.int64(y0)
+    if x0i < 0 or x0i >= w:
+        x0i %= w
+    if y0i < 0 or y0i >= h:
+        y0i %= h
+    x1i = x0i + 1 if x0i + 1 < w else 0
+    y1i = y0i + 1 if y0i + 1 < h else 0
+    rgb = np.empty(3, np.float32)
+    for k in range(3):
+        ch = k if c > 1 else 0
+        t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
+        t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
+        t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
+        t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
+        rgb[k] = np.float32((((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11)
+    return rgb
+
+
+def _surface(positions, normals, faces, prim, u, v, one, w0, ray_o, ray_d, use_ray, face_material, albedo_table,
+             emission_table, uvs, tex_slot, tex_shape, tex_data, p, ng, ns, albedo, emission):
+    """:func:`surface_attributes` per hit in one pass: barycentrics ``(one - u) - v`` in the hits' own precision
+    (``one`` carries it; or ``w0`` where given), then float64; :func:`_hit_geometry`; the material's constant albedo
+    or its texture at the hit (:func:`_texel`), and its emission. The bits of :func:`surface_attributes_reference`."""
+    given = w0.shape[0] > 0
+    for i in range(prim.shape[0]):
+        f = prim[i]
+        a = w0[i] if given else np.float64((one - u[i]) - v[i])
+        b1, b2 = np.float64(u[i]), np.float64(v[i])
+        r = _hit_geometry_jit(positions, normals, faces[f, 0], faces[f, 1], faces[f, 2], a, b1, b2,
+                              use_ray, ray_o[i, 0] if use_ray else 0.0, ray_o[i, 1] if use_ray else 0.0,
+                              ray_o[i, 2] if use_ray else 0.0, ray_d[i, 0] if use_ray else 0.0,
+                              ray_d[i, 1] if use_ray else 0.0, ray_d[i, 2] if use_ray else 0.0)
+        for k in range(3):
+            p[i, k] = r[k]
+            ng[i, k] = r[3 + k]
+            ns[i, k] = r[6 + k]
+        m = face_material[f]
+        for k in range(3):
+            albedo[i, k] = albedo_table[m, k]
+            emission[i, k] = emission_table[m, k]
+        slot = tex_slot[m]
+        if slot >= 0:
+            rgb = _texel_jit(uvs, faces[f, 0], faces[f, 1], faces[f, 2], a, b1, b2, slot, tex_shape, tex_data)
+            albedo[i, 0], albedo[i, 1], albedo[i, 2] = rgb[0], rgb[1], rgb[2]
+
+
 def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_material, face_kind, face_object,
             albedo_table, emission_table, uvs, tex_slot, tex_shape, tex_data, motion_on, prev_xform, prev_cam,
             prev_basis, tan_x, aspect, width, position, geo, normal, albedo, emission, depth, material, kind, motion):
@@ -224,7 +272,7 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
     material, kind, and motion (the previous-time point through its object's ``prev_xform`` (3 x 4 rows per
     object; none when nothing is animated), projected as :func:`project` computes it, plain (x + y) + z dot
     products as on the device); background values for a miss. Albedo textures (``texture_table``) are looked up as
-    :func:`lookup_texture` does: float64 UVs interpolated as :func:`_materials` does, bilinear and repeating,
+    :func:`lookup_texture` does: float64 UVs interpolated as :func:`_materials_reference` does, bilinear and repeating,
     rounded to float32."""
     height = prim.shape[0] // width
     for i in range(prim.shape[0]):
@@ -260,25 +308,9 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
             emission[i, k] = emission_table[m, k] if flip < 0.0 else np.float32(0.0)
         slot = tex_slot[m]
         if slot >= 0:
-            f0, f1, f2 = faces[f, 0], faces[f, 1], faces[f, 2]
-            b1, b2 = np.float64(u[i]), np.float64(v[i])
-            uvx = (np.float64(uvs[f0, 0]) * a + np.float64(uvs[f1, 0]) * b1) + np.float64(uvs[f2, 0]) * b2
-            uvy = (np.float64(uvs[f0, 1]) * a + np.float64(uvs[f1, 1]) * b1) + np.float64(uvs[f2, 1]) * b2
-            h, w, c, off = tex_shape[slot, 0], tex_shape[slot, 1], tex_shape[slot, 2], tex_shape[slot, 3]
-            x = uvx * w - 0.5
-            y = uvy * h - 0.5
-            x0, y0 = np.floor(x), np.floor(y)
-            fx, fy = x - x0, y - y0
-            x0i, y0i = np.int64(x0) % w, np.int64(y0) % h  # numba's integer % floors, as numpy's
-            x1i, y1i = (x0i + 1) % w, (y0i + 1) % h
-            for k in range(3):
-                ch = k if c > 1 else 0
-                t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
-                t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
-                t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
-                t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
-                val = (((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11
-                albedo[i, k] = np.float32(val)
+            rgb = _texel_jit(uvs, faces[f, 0], faces[f, 1], faces[f, 2], a, np.float64(u[i]), np.float64(v[i]), slot,
+                             tex_shape, tex_data)
+            albedo[i, 0], albedo[i, 1], albedo[i, 2] = rgb[0], rgb[1], rgb[2]
         depth[i] = t[i]
         material[i] = m
         kind[i] = face_kind[f]
@@ -304,17 +336,18 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
 
 
 def _kernels():
-    """:func:`_attributes`, :func:`_facing`, :func:`_pixels` and :func:`_camera` compiled (numba, one pass over the hits
+    """:func:`_surface`, :func:`_facing`, :func:`_pixels` and :func:`_camera` compiled (numba, one pass over the hits
     or pixels, compiled on first use): every float64 operation in the order of the numpy expressions of
     :func:`surface_attributes_reference` / :func:`camera_rays_reference` and of the Dr.Jit G-buffer, so they give
     the same bits (motion vectors: the Dr.Jit G-buffer's order)."""
-    global _compiled, _hit_geometry_jit
+    global _compiled, _hit_geometry_jit, _texel_jit
     if _compiled is None:
         import numba
 
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
         _hit_geometry_jit = jit(_hit_geometry)
-        _compiled = (jit(_attributes), jit(_facing), jit(_pixels), jit(_camera))
+        _texel_jit = jit(_texel)
+        _compiled = (jit(_surface), jit(_facing), jit(_pixels), jit(_camera))
     return _compiled
 
 
@@ -325,25 +358,40 @@ def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=
     triangle's plane, computed in float64: the tracers' float32 distance carries an error that grows with the
     distance from the origin, which would shift shadow edges in scenes far from the origin.
 
-    Position and normals come from one compiled pass over the hits (:func:`_kernels`), with the bits of
+    Everything comes from one compiled pass over the hits (:func:`_surface`), with the bits of
     :func:`surface_attributes_reference`.
     """
-    faces = np.ascontiguousarray(scene.faces[prim])
-    n = len(faces)
-    w0 = np.asarray(1.0 - u - v).astype(np.float64)  # in the barycentrics' own precision, then float64
-    w1, w2 = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    prim = np.ascontiguousarray(prim, np.int64)
+    u, v = np.asarray(u), np.asarray(v)
+    # 1 - u - v in the barycentrics' own precision (the kernel's, where u and v share a float type), then float64
+    same = u.dtype == v.dtype and u.dtype in (np.float32, np.float64)
+    w0 = np.zeros(0) if same else np.ascontiguousarray(np.asarray(1.0 - u - v).astype(np.float64)).reshape(-1)
+    dt = u.dtype if same else np.dtype(np.float64)
+    u, v = np.ascontiguousarray(u, dt).reshape(-1), np.ascontiguousarray(v, dt).reshape(-1)
+    n = len(prim)
     p, ng, ns = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    albedo, emission = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    if n == 0:
+        return p, ng, ns, albedo, emission
     use_ray = ray_o is not None
     ro = np.ascontiguousarray(ray_o, np.float64) if use_ray else np.zeros((1, 3))
     rd = np.ascontiguousarray(ray_d, np.float64) if use_ray else np.zeros((1, 3))
-    _kernels()[0](np.ascontiguousarray(positions), np.ascontiguousarray(normals), faces, w0, w1, w2, ro, rd, use_ray,
-                  p, ng, ns)
-    albedo, emission = _materials(scene, faces, prim, w0, w1, w2)
+    _kernels()[0](np.ascontiguousarray(positions), np.ascontiguousarray(normals), scene.faces, prim, u, v,
+                  dt.type(1.0), w0, ro, rd, use_ray, scene.face_material, *material_tables(scene),
+                  np.ascontiguousarray(scene.uvs), *texture_table(scene), p, ng, ns, albedo, emission)
     return p, ng, ns, albedo, emission
 
 
-def _materials(scene, faces, prim, w0, w1, w2):
-    """(albedo, emission) float32 of hits on faces ``faces`` (indices ``prim``) at barycentrics w0, w1, w2."""
+def material_tables(scene):
+    """(albedo (M, 3) float32, emission (M, 3) float32): the constant albedo and the emission of every material (one
+    row per material, not per face: cheap enough to build per call, and never stale)."""
+    return (np.stack([m.albedo for m in scene.materials]).astype(np.float32),
+            np.stack([m.emission for m in scene.materials]).astype(np.float32))
+
+
+def _materials_reference(scene, faces, prim, w0, w1, w2):
+    """(albedo, emission) float32 of hits on faces ``prim`` (vertex indices ``faces``) at float64 barycentrics w0,
+    w1, w2, as whole-array numpy expressions (the materials part of :func:`surface_attributes_reference`)."""
     mat = scene.face_material[prim]
     albedo = scene.face_albedo()[prim].astype(np.float32)
     for mid, m in enumerate(scene.materials):
@@ -374,7 +422,7 @@ def surface_attributes_reference(scene, positions, normals, prim, u, v, ray_o=No
     ns = (normals[faces].astype(np.float64) * w).sum(axis=1)
     ns_len = np.linalg.norm(ns, axis=-1, keepdims=True)
     ns = np.where(ns_len > 1e-12, ns / np.maximum(ns_len, 1e-30), ng)
-    albedo, emission = _materials(scene, faces, prim, w[:, 0, 0], w[:, 1, 0], w[:, 2, 0])
+    albedo, emission = _materials_reference(scene, faces, prim, w[:, 0, 0], w[:, 1, 0], w[:, 2, 0])
     return p, ng, ns, albedo, emission
 
 
@@ -450,12 +498,10 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
     prev_pose = scene.camera.pose_at(prev_t_s if motion_on else t_s)
     prev_xform = _previous_transforms(scene, t_s, prev_t_s) if motion_on and scene.object_animations \
         else np.zeros((0, 12))
-    mats = scene.materials
     _kernels()[2](np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
                   scene.faces, hits.prim, hits.u, hits.v, hits.t, np.asarray(pose.position, np.float64), d64, dirs,
-                  scene.face_material, scene.face_kind_codes(), scene.face_object,
-                  np.stack([m.albedo for m in mats]).astype(np.float32),
-                  np.stack([m.emission for m in mats]).astype(np.float32), scene.uvs, *texture_table(scene), motion_on,
+                  scene.face_material, scene.face_kind_codes(), scene.face_object, *material_tables(scene),
+                  scene.uvs, *texture_table(scene), motion_on,
                   prev_xform,
                   np.asarray(prev_pose.position, np.float64), np.stack(prev_pose.basis()).astype(np.float64),
                   float(np.tan(np.radians(fov) / 2.0)), width / height, width,
