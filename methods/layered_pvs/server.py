@@ -440,30 +440,115 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     accumulation, rejects through its luminance edge-stopping; the denoised layers came out about half as
     bright as the reference (tests/methods/layered_pvs/test_radiance.py).
 
-    The bounces run as compiled passes over the wavefront (:mod:`methods.layered_pvs.kernels`) with the bits of
-    :func:`path_trace_reference`."""
+    The paths are split into :data:`PATH_PARTS` parts (contiguous row ranges, each with its own random generator
+    spawned from ``rng``: the result does not depend on how the parts are scheduled). Each part's bounces run as
+    compiled passes over its wavefront (:mod:`methods.layered_pvs.kernels`) with the bits of
+    :func:`path_trace_reference`, which runs the same parts one after the other. On a host tracer the parts and
+    the primary fragments' direct lighting run on their own threads that take turns at the tracer (one query at
+    a time, under a lock: one stream of rays, as the raw backend traces them), so one thread's shading passes
+    (compiled, the GIL released) overlap another's queries. The direct light is added last, so the sums do not
+    depend on the order the threads ran in."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
         return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
-    direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), int(rng.integers(1 << 31)))
+    seed = int(rng.integers(1 << 31))
+    total = n * spp
+    sample = np.zeros((total, 3))
+    parts = _path_parts(total, rng)
+    shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
+    if getattr(tracer, "device", None) is not None:
+        # Dr.Jit is driven from one thread: the parts one after the other.
+        direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), seed)
+        for part in parts:
+            _part_paths(tracer, *shared, *part)
+    else:
+        import threading
+        from concurrent.futures import ThreadPoolExecutor
+
+        serial = _Serial(tracer, threading.Lock())
+        with ThreadPoolExecutor(max_workers=len(parts)) as pool:
+            pending_direct = pool.submit(direct_illumination, scene, serial, frag, t_s, max(int(spp), 1), seed)
+            pending = [pool.submit(_part_paths, serial, *shared, *part) for part in parts[1:]]
+            _part_paths(serial, *shared, *parts[0])
+            direct = pending_direct.result()
+            for f in pending:
+                f.result()
+    # The primary fragment's direct light last: the same sums whatever order the parts ran in.
+    sample += np.tile(direct.astype(np.float64), (spp, 1))
+    return _path_moments(sample, n, spp)
+
+
+# Parts of the path tracer's wavefront (row ranges with their own generators): two, so that one part shades while
+# the other's rays are traced.
+PATH_PARTS = 2
+
+
+def _path_parts(total: int, rng) -> list:
+    """[(first row, end row, generator)]: the wavefront's rows in :data:`PATH_PARTS` contiguous ranges (one when
+    there are fewer rows than parts), each with a generator spawned from ``rng``."""
+    count = max(1, min(PATH_PARTS, total))
+    bounds = np.linspace(0, total, count + 1).astype(np.int64)
+    return [(int(a), int(b), g) for a, b, g in zip(bounds[:-1], bounds[1:], rng.spawn(count))]
+
+
+def _path_moments(sample, n: int, spp: int):
+    """(mean illumination float32, first and second moments of its luminance) per fragment."""
+    lum_w = np.array([0.2126, 0.7152, 0.0722])
+    per = sample.reshape(spp, n, 3)
+    illum = per.sum(axis=0)
+    lum = per @ lum_w
+    m1 = lum.sum(axis=0)
+    m2 = (lum * lum).sum(axis=0)
+    return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
+
+
+class _Serial:
+    """A tracer whose queries run one at a time under ``lock``: one stream of rays whatever thread sends them (and
+    the tracer's scratch buffers and counters are touched by one query at a time). Everything else is the
+    tracer's."""
+
+    def __init__(self, tracer, lock):
+        self.tracer, self.lock = tracer, lock
+        if hasattr(tracer, "occluded_local"):
+            self.occluded_local = self._occluded_local
+
+    def __getattr__(self, name):
+        return getattr(self.tracer, name)
+
+    def intersect(self, *args, **kwargs):
+        with self.lock:
+            return self.tracer.intersect(*args, **kwargs)
+
+    def occluded(self, *args, **kwargs):
+        with self.lock:
+            return self.tracer.occluded(*args, **kwargs)
+
+    def _occluded_local(self, *args, **kwargs):
+        with self.lock:
+            return self.tracer.occluded_local(*args, **kwargs)
+
+
+def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, lights,
+                sample, first: int, end: int, rng) -> None:
+    """The bounces of the wavefront rows ``first:end`` (row = sample * n + fragment), their contributions added to
+    ``sample`` (rows of other parts are not touched)."""
+    n = len(frag.position)
     positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
     shift = getattr(tracer, "shift", None)
     shift64 = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
     kern = kernels.jit()
     offset = kernels.OFFSET
     light_args = lights.kernel_args()
-    lum_w = np.array([0.2126, 0.7152, 0.0722])
-    # One wavefront holds every sample of every fragment (row = sample * n + fragment); rows stay unique within
-    # a wavefront, so contributions are added without conflicts. The wavefront shrinks in place: its buffers are
-    # allocated once for every path (the compiled passes compact into them, a row never moving up).
-    total = n * spp
-    rows = np.arange(total)
+    # The part's wavefront shrinks in place: its buffers are allocated once for every path (the compiled passes
+    # compact into them, a row never moving up); rows stay unique, so contributions are added without conflicts.
+    total = end - first
+    rows = np.arange(first, end)
     thr = np.ones((total, 3))          # demodulated: the primary vertex's albedo is left out
-    p = np.tile(frag.position, (spp, 1))
-    ng = np.tile(frag.geo_normal, (spp, 1))
-    ns = np.tile(frag.normal, (spp, 1))
-    sample = np.tile(direct.astype(np.float64), (spp, 1))
+    frag_rows = rows % n
+    p = frag.position[frag_rows]
+    ng = frag.geo_normal[frag_rows]
+    ns = frag.normal[frag_rows]
     o64, d64 = np.empty((total, 3)), np.empty((total, 3))
     o32, d32 = np.empty((total, 3), np.float32), np.empty((total, 3), np.float32)
     prim, u, v = np.empty(total, np.int32), np.empty(total, np.float32), np.empty(total, np.float32)
@@ -499,17 +584,12 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
         if k:
             occ = tracer.occluded(sel_o32[:k], sel_d32[:k], 0.0, sel_tmax32[:k])
             kern["_add_unoccluded"](sample, sel_rows[:k], sel_contrib[:k], np.asarray(occ, np.bool_))
-    per = sample.reshape(spp, n, 3)
-    illum = per.sum(axis=0)
-    lum = per @ lum_w
-    m1 = lum.sum(axis=0)
-    m2 = (lum * lum).sum(axis=0)
-    return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
 
 
 def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
-    """:func:`path_trace` as whole-array numpy expressions per bounce (the reference its compiled passes,
-    :mod:`methods.layered_pvs.kernels`, are tested against: the same bits from the same generator)."""
+    """:func:`path_trace` as whole-array numpy expressions per bounce, its parts one after the other (the reference
+    its compiled passes, :mod:`methods.layered_pvs.kernels`, and its scheduling are tested against: the same bits
+    from the same generator)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
@@ -517,63 +597,57 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
     direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), int(rng.integers(1 << 31)))
     positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
     shift = getattr(tracer, "shift", None)
-    lum_w = np.array([0.2126, 0.7152, 0.0722])
-    # One wavefront holds every sample of every fragment (row = sample * n + fragment); rows stay unique within
-    # a wavefront, so contributions are added by plain fancy indexing.
     total = n * spp
-    rows = np.arange(total)
-    p = np.tile(frag.position, (spp, 1))
-    ng = np.tile(frag.geo_normal, (spp, 1))
-    ns = np.tile(frag.normal, (spp, 1))
-    thr = np.ones((total, 3))          # demodulated: the primary vertex's albedo is left out
-    sample = np.tile(direct.astype(np.float64), (spp, 1))
-    depth = 1
-    while len(rows) and depth + 1 < max_depth:
-        m = len(rows)
-        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
-        if depth >= rr_depth:
-            q = np.minimum(thr.max(axis=1), 0.95)
-            live = rng.random(m) < q
-            thr = thr / np.maximum(q, 1e-12)[:, None]
-        else:
-            live = np.ones(m, bool)
-        d_new = _cosine_hemisphere(ns, rng.random((m, 2)))
-        live &= _dot(d_new, ng) > 0
-        if not live.any():
-            break
-        rows, p, ng, ns, thr, d_new = rows[live], p[live], ng[live], ns[live], thr[live], d_new[live]
-        o = offset_ray_origin(p, ng, shift)
-        hits = tracer.intersect(o.astype(np.float32), d_new.astype(np.float32))
-        hit = hits.prim >= 0
-        rows, o, d_new, thr = rows[hit], o[hit], d_new[hit], thr[hit]
-        if len(rows) == 0:
-            break
-        p2, ng2, ns2, alb2, _ = surface_attributes(scene, positions, normals, hits.prim[hit], hits.u[hit],
-                                                   hits.v[hit], o, d_new)
-        ng, ns, _ = _facing(ng2, ns2, d_new)
-        thr = thr * alb2
-        p = p2
-        depth += 1
-        m = len(rows)
-        # Next-event estimation towards one light.
-        wi, dist, wl, ok = lights.sample(p, rng.random(m), rng.random((m, 2)))
-        cos_x = _dot(wi, ns)
-        ok &= cos_x > 0
-        if ok.any():
-            sel = np.nonzero(ok)[0]
-            side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
-            o = offset_ray_origin(p[sel], side, shift)
-            seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
-            occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
-                                  (seg * SHADOW_TMAX_SCALE).astype(np.float32))
-            lit = sel[~occ]
-            sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
-    per = sample.reshape(spp, n, 3)
-    illum = per.sum(axis=0)
-    lum = per @ lum_w
-    m1 = lum.sum(axis=0)
-    m2 = (lum * lum).sum(axis=0)
-    return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
+    sample = np.zeros((total, 3))
+    for first, end, part_rng in _path_parts(total, rng):
+        # One wavefront per part (row = sample * n + fragment); rows stay unique within it, so contributions are
+        # added by plain fancy indexing.
+        rows = np.arange(first, end)
+        p, ng, ns = frag.position[rows % n], frag.geo_normal[rows % n], frag.normal[rows % n]
+        thr = np.ones((len(rows), 3))          # demodulated: the primary vertex's albedo is left out
+        depth = 1
+        while len(rows) and depth + 1 < max_depth:
+            m = len(rows)
+            # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
+            if depth >= rr_depth:
+                q = np.minimum(thr.max(axis=1), 0.95)
+                live = part_rng.random(m) < q
+                thr = thr / np.maximum(q, 1e-12)[:, None]
+            else:
+                live = np.ones(m, bool)
+            d_new = _cosine_hemisphere(ns, part_rng.random((m, 2)))
+            live &= _dot(d_new, ng) > 0
+            if not live.any():
+                break
+            rows, p, ng, ns, thr, d_new = rows[live], p[live], ng[live], ns[live], thr[live], d_new[live]
+            o = offset_ray_origin(p, ng, shift)
+            hits = tracer.intersect(o.astype(np.float32), d_new.astype(np.float32))
+            hit = hits.prim >= 0
+            rows, o, d_new, thr = rows[hit], o[hit], d_new[hit], thr[hit]
+            if len(rows) == 0:
+                break
+            p2, ng2, ns2, alb2, _ = surface_attributes(scene, positions, normals, hits.prim[hit], hits.u[hit],
+                                                       hits.v[hit], o, d_new)
+            ng, ns, _ = _facing(ng2, ns2, d_new)
+            thr = thr * alb2
+            p = p2
+            depth += 1
+            m = len(rows)
+            # Next-event estimation towards one light.
+            wi, dist, wl, ok = lights.sample(p, part_rng.random(m), part_rng.random((m, 2)))
+            cos_x = _dot(wi, ns)
+            ok &= cos_x > 0
+            if ok.any():
+                sel = np.nonzero(ok)[0]
+                side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
+                o = offset_ray_origin(p[sel], side, shift)
+                seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
+                occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
+                                      (seg * SHADOW_TMAX_SCALE).astype(np.float32))
+                lit = sel[~occ]
+                sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
+    sample += np.tile(direct.astype(np.float64), (spp, 1))
+    return _path_moments(sample, n, spp)
 
 
 # ------------------------------------------------------------------------------------------ SVGF with layers
