@@ -353,9 +353,11 @@ def _kernels():
     if _compiled is None:
         import numba
 
-        _gbuffer._kernels()  # binds suite.core.gbuffer's compiled hit geometry, which _surface_pass calls
+        _gbuffer._kernels()  # binds suite.core.gbuffer's compiled hit geometry and texel, which _surface_pass calls
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-        _compiled = (jit(_camera), jit(_surface_pass))
+        # _surface_pass is not cached: it calls kernels of suite.core.gbuffer, and numba's cache of a function is
+        # keyed by its own file only, so a cached _surface_pass could call code of an older gbuffer.py.
+        _compiled = (jit(_camera), numba.njit(cache=False, nogil=True, error_model="numpy")(_surface_pass))
     return _compiled
 
 
