@@ -41,9 +41,11 @@ def package_versions() -> dict:
 
 
 def host_facts() -> dict:
+    from suite import memory
+
     return {"node": platform.node(), "machine": platform.machine(), "system": platform.system(),
             "platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "allocator": memory.setting()}
 
 
 @lru_cache(maxsize=1)
