@@ -170,3 +170,25 @@ def test09_compiled_surface_attributes_give_the_bits_of_the_numpy_reference(scen
     out = gb.facing(ng, ns, g.view_dir.reshape(-1, 3)[idx])
     assert np.array_equal(out[0], ng_view.astype(np.float32)) and np.array_equal(out[1], ns_view.astype(np.float32))
     assert np.array_equal(out[2], flip[:, 0] < 0)
+
+
+def test10_ray_arguments_take_the_bits_of_the_numpy_column_passes():
+    """as_rays moves origins into the tracing frame and advances them by tmin (scalar or per ray) in one compiled
+    pass for large row-major batches: the same float32 bits as numpy's column subtraction in the origins' own
+    precision followed by ``o += d * tmin``."""
+    from suite.core.trace.base import as_rays
+
+    rng = np.random.default_rng(0)
+    n = 20000  # above the compiled pass's threshold
+    shift = np.array([12.3, -45.6, 7.89])
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    for dtype in (np.float32, np.float64):
+        o = (rng.normal(size=(n, 3)) * 1000).astype(dtype)
+        for tmin in (0.0, np.float32(0.25), (rng.random(n) * 50).astype(np.float32)):
+            got, _, _, _ = as_rays(o, d, tmin, np.inf, shift)
+            expected = np.empty((n, 3), np.float32)
+            for c in range(3):
+                np.subtract(o[:, c], shift[c], out=expected[:, c], casting="unsafe")
+            if np.ndim(tmin) or tmin > 0:
+                expected += d * np.broadcast_to(np.float32(tmin), (n,))[:, None]
+            assert np.array_equal(got, expected)

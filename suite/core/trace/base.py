@@ -67,20 +67,27 @@ def _scratch_array(scratch, name: str, shape, dtype) -> np.ndarray:
 _shift_rows_kernel = None
 
 
-def _shift_rows(o_in: np.ndarray, shift, out: np.ndarray) -> None:
+def _shift_rows(o_in: np.ndarray, shift, out: np.ndarray, d=None, tmin=None) -> None:
     """``out[i, c] = float32(float64(o_in[i, c]) - shift[c])`` in one compiled pass over (N, 3) rows (numpy's three
-    strided column passes cost a few percent of a backend query)."""
+    strided column passes cost a few percent of a backend query); with per-ray ``tmin`` (float32) the origins are
+    advanced in the same pass, ``out[i, c] += float32(d[i, c] * tmin[i])`` in float32 as numpy's
+    ``o += d * tmin[:, None]`` computes it."""
     global _shift_rows_kernel
     if _shift_rows_kernel is None:
         import numba
 
-        def kernel(o_in, shift, out):
+        def kernel(o_in, shift, out, d, tmin, advance):
             for i in range(o_in.shape[0]):
                 for c in range(3):
-                    out[i, c] = np.float64(o_in[i, c]) - shift[c]
+                    x = np.float32(np.float64(o_in[i, c]) - shift[c])
+                    if advance:
+                        x = np.float32(x + np.float32(d[i, c] * tmin[i]))
+                    out[i, c] = x
 
         _shift_rows_kernel = numba.njit(cache=True, nogil=True)(kernel)
-    _shift_rows_kernel(o_in, np.asarray(shift, np.float64), out)
+    advance = tmin is not None
+    _shift_rows_kernel(o_in, np.asarray(shift, np.float64), out, d if advance else np.zeros((1, 3), np.float32),
+                       tmin if advance else np.zeros(1, np.float32), advance)
 
 
 def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False, scratch: dict | None = None):
@@ -99,23 +106,23 @@ def as_rays(origins, dirs, tmin, tmax, shift=None, soa: bool = False, scratch: d
         raise UserError(f"ray origins {o_in.shape} and directions {d.shape} differ in shape")
     n = len(o_in)
     o = _scratch_array(scratch, "o", (3, n) if soa else (n, 3), np.float32)
+    scalar_tmin = np.ndim(tmin) == 0
+    has_tmin = not scalar_tmin or tmin > 0
+    tmin_a = (np.full(n, np.float32(tmin), np.float32) if scalar_tmin else np.asarray(tmin, np.float32).reshape(n)) \
+        if has_tmin else np.float32(0.0)
     if not soa and shift is not None and n >= 4096 and o_in.dtype in (np.float32, np.float64) \
             and o_in.flags.c_contiguous:
-        _shift_rows(o_in, shift, o)
+        _shift_rows(o_in, shift, o, d, np.ascontiguousarray(tmin_a) if has_tmin else None)
     else:
         # Column by column: numpy's broadcast over a length-3 inner axis is several times slower.
         for c in range(3):
             np.subtract(o_in[:, c], shift[c] if shift is not None else 0.0, out=o[c] if soa else o[:, c],
                         casting="unsafe")
-    scalar_tmin = np.ndim(tmin) == 0
-    has_tmin = not scalar_tmin or tmin > 0
-    tmin_a = (np.full(n, np.float32(tmin), np.float32) if scalar_tmin else np.asarray(tmin, np.float32).reshape(n)) \
-        if has_tmin else np.float32(0.0)
-    if has_tmin:
-        if soa:
-            o += d.T * tmin_a[None, :]
-        else:
-            o += d * tmin_a[:, None]
+        if has_tmin:
+            if soa:
+                o += d.T * tmin_a[None, :]
+            else:
+                o += d * tmin_a[:, None]
     # Lengths are clipped to [0, MAX_RAY_LENGTH] (both backends take a finite float32 far value), in the same
     # pass that makes the float32 copy.
     if np.ndim(tmax) == 0:

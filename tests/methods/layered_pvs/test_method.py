@@ -192,3 +192,17 @@ def test10_a_run_whose_updates_arrive_corrupt_completes_and_counts_rejections(tm
     html = report.section(f.assign(run=run_dir.name, method="layered_pvs", resolution="32x18",
                                    scene="living_room"), [run_dir], out_dir=tmp_path / "report")
     assert "002.quadtree_vs_rle" in html and "002.dssim_static" in html
+
+
+def test11_the_pvs_is_the_union_of_its_views_and_a_repeated_view_is_traced_once(world):
+    """Algorithm 1's PVS: every triangle some view sees. The views of a camera with no known motion repeat the
+    current one; repeating a view adds no triangle and no ray."""
+    scene, tracer = world
+    wl, hl, fov = sv.layer_size(*RES, scene.camera.fov_deg, 1.1, 8)
+    a, b = scene.camera.pose_at(0.3), scene.camera.pose_at(0.7)
+    each = [set(sv.compute_pvs(tracer, [p], fov, wl, hl).tolist()) for p in (a, b)]
+    before = dict(tracer.counters)
+    both = sv.compute_pvs(tracer, [a, b, a, a, b], fov, wl, hl)
+    traced = sum(tracer.counters.values()) - sum(before.values())
+    assert set(both.tolist()) == each[0] | each[1] and np.all(np.diff(both) > 0)
+    assert traced == 2 * wl * hl
