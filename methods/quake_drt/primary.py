@@ -124,7 +124,7 @@ def camera_rays(scene, t_s: float, width: int, height: int, seeds: np.ndarray, j
     n = width * height
     d = np.empty((n, 3))
     _kernels()[0](np.asarray(forward, np.float64), np.asarray(right, np.float64), np.asarray(up, np.float64),
-                  float(tan_x), aspect, int(width), int(height),
+                  float(tan_x), aspect, int(width), int(height), 0, int(height),
                   np.ascontiguousarray(np.broadcast_to(jx, (n,)), np.float64),
                   np.ascontiguousarray(np.broadcast_to(jy, (n,)), np.float64), d)
     return origin, d
@@ -150,10 +150,11 @@ def camera_rays_reference(scene, t_s: float, width: int, height: int, seeds: np.
     return origin, d
 
 
-def _camera(forward, right, up, tan_x, aspect, width, height, jx, jy, out):
-    """Unit directions through the pixels offset by (jx, jy): the float64 operations of
-    :func:`camera_rays_reference` in their order (numpy's norm sums the squares as (x + y) + z)."""
-    for i in range(height):
+def _camera(forward, right, up, tan_x, aspect, width, height, row0, row1, jx, jy, out):
+    """Unit directions through the pixels of rows ``row0:row1`` offset by (jx, jy) (``jx``, ``jy`` and ``out`` hold
+    the whole image): the float64 operations of :func:`camera_rays_reference` in their order (numpy's norm sums the
+    squares as (x + y) + z)."""
+    for i in range(row0, row1):
         for j in range(width):
             k = i * width + j
             px = (2.0 * ((np.float64(j) + 0.5) + jx[k]) / width - 1.0) * tan_x
@@ -230,22 +231,32 @@ def surface_from_hits(scene, t_s: float, o: np.ndarray, d: np.ndarray, prim, u, 
     textures = _texture_table(scene)
     if textures is None:
         return surface_from_hits_reference(scene, t_s, o, d, prim, u, v, t)
+    s = _new_surface(o, d)
+    if len(o):
+        _fill_surface(scene, t_s, textures, s, 0, len(o), prim, u, v, t)
+    return s
+
+
+def _new_surface(o, d) -> Surface:
+    """A Surface for the rays (o, d), its per-hit fields not yet filled (:func:`_fill_surface`)."""
     n = len(o)
-    s = Surface(valid=np.empty(n, bool), prim=np.empty(n, np.int64), u=np.empty(n), v=np.empty(n),
-                p=np.empty((n, 3)), ng=np.empty((n, 3)), ns=np.empty((n, 3)), ng_view=np.empty((n, 3)),
-                ns_view=np.empty((n, 3)), albedo=np.empty((n, 3)), emission=np.empty((n, 3)),
-                material=np.empty(n, np.int64), o=np.asarray(o, np.float64), d=np.asarray(d, np.float64),
-                t=np.empty(n), overlay_rgb=np.zeros((n, 3)), overlay_t=np.ones(n))
-    if n == 0:
-        return s
+    return Surface(valid=np.empty(n, bool), prim=np.empty(n, np.int64), u=np.empty(n), v=np.empty(n),
+                   p=np.empty((n, 3)), ng=np.empty((n, 3)), ns=np.empty((n, 3)), ng_view=np.empty((n, 3)),
+                   ns_view=np.empty((n, 3)), albedo=np.empty((n, 3)), emission=np.empty((n, 3)),
+                   material=np.empty(n, np.int64), o=np.asarray(o, np.float64), d=np.asarray(d, np.float64),
+                   t=np.empty(n), overlay_rgb=np.zeros((n, 3)), overlay_t=np.ones(n))
+
+
+def _fill_surface(scene, t_s: float, textures, s: Surface, a: int, b: int, prim, u, v, t) -> None:
+    """Rows ``a:b`` of ``s`` from the hits ``(prim, u, v, t)`` of its rays ``a:b`` (:func:`_surface_pass`)."""
     albedo_table, emission_table, tex_slot, tex_shape, tex_data = textures
     _kernels()[1](np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
                   scene.faces, scene.face_material, albedo_table, emission_table, tex_slot, tex_shape, tex_data,
                   scene.uvs if scene.uvs is not None else np.zeros((1, 2), np.float32),
-                  np.ascontiguousarray(s.o), np.ascontiguousarray(s.d), np.ascontiguousarray(prim),
-                  np.ascontiguousarray(u), np.ascontiguousarray(v), np.ascontiguousarray(t), s.valid, s.prim, s.u,
-                  s.v, s.t, s.p, s.ng, s.ns, s.ng_view, s.ns_view, s.albedo, s.emission, s.material)
-    return s
+                  np.ascontiguousarray(s.o[a:b]), np.ascontiguousarray(s.d[a:b]), np.ascontiguousarray(prim),
+                  np.ascontiguousarray(u), np.ascontiguousarray(v), np.ascontiguousarray(t), s.valid[a:b],
+                  s.prim[a:b], s.u[a:b], s.v[a:b], s.t[a:b], s.p[a:b], s.ng[a:b], s.ns[a:b], s.ng_view[a:b],
+                  s.ns_view[a:b], s.albedo[a:b], s.emission[a:b], s.material[a:b])
 
 
 def surface_from_hits_reference(scene, t_s: float, o: np.ndarray, d: np.ndarray, prim, u, v, t) -> Surface:
@@ -420,6 +431,14 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
     same queries and results as one after the other."""
     width, height = resolution
     skip = None if overlay_kind is None else overlay_kind > 0
+    textures = _texture_table(scene)
+    if jitter and aperture_m <= 0.0 and skip is None and textures is not None:
+        # Jittered pinhole rays without overlays: both ray sets pipelined in row chunks (the backend traces one
+        # chunk while a worker makes the next chunk's rays and the previous chunk's surfaces).
+        tracer.update(t_s)
+        s = _shading_samples(scene, tracer, t_s, width, height, seeds, textures)
+        g, _, _, _ = trace_primary(scene, tracer, t_s, (width, height), prev_t_s)
+        return g, s
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending, layers = None, []
         if jitter or aperture_m > 0.0:
@@ -453,6 +472,39 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
     if centre is not None:
         _patch_gbuffer(g, over, centre, scene)
     return g, s
+
+
+def _shading_samples(scene, tracer, t_s: float, width: int, height: int, seeds: np.ndarray, textures) -> Surface:
+    """:func:`surface_from_hits` of the jittered pinhole rays of :func:`camera_rays`, made, traced and shaded in row
+    chunks (:func:`suite.core.gbuffer.pipelined_rows`): the same rays, queries and bits as the whole-image passes."""
+    pose = scene.camera.pose_at(t_s)
+    basis = [np.asarray(b, np.float64) for b in pose.basis()]
+    seeds = np.asarray(seeds, np.uint32).reshape(-1)
+    jx = np.ascontiguousarray(uniform_np(seeds, DIM_JITTER_X) - 0.5, np.float64)
+    jy = np.ascontiguousarray(uniform_np(seeds, DIM_JITTER_Y) - 0.5, np.float64)
+    tan_x = float(np.tan(np.radians(scene.camera.fov_deg) / 2.0))
+    n = width * height
+    o = np.broadcast_to(np.asarray(pose.position, np.float64), (n, 3)).copy()
+    d, d32 = np.empty((n, 3)), np.empty((n, 3), np.float32)
+    prim, u, v, t = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
+    s = _new_surface(o, d)
+    camera = _kernels()[0]
+
+    def make(r0, r1):
+        camera(*basis, tan_x, width / height, int(width), int(height), r0, r1, jx, jy, d)
+        d32[r0 * width:r1 * width] = d[r0 * width:r1 * width]
+
+    def trace(r0, r1):
+        a, b = r0 * width, r1 * width
+        h = tracer.intersect(o[a:b], d32[a:b])
+        prim[a:b], u[a:b], v[a:b], t[a:b] = h.prim, h.u, h.v, h.t
+
+    def finish(r0, r1):
+        a, b = r0 * width, r1 * width
+        _fill_surface(scene, t_s, textures, s, a, b, prim[a:b], u[a:b], v[a:b], t[a:b])
+
+    _gbuffer.pipelined_rows(height, width, make, trace, finish)
+    return s
 
 
 def _raw_normal_materials(scene) -> np.ndarray:

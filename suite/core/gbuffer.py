@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from suite.errors import UserError
+from suite.core.trace.base import Hits
 
 
 @dataclass
@@ -77,16 +78,17 @@ def camera_rays(pose, fov_deg: float, width: int, height: int, dtype=np.float32)
     forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
     tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
     dirs = np.empty((height * width, 3), dtype)
-    _kernels()[3](forward, right, up, tan_x, width / height, int(width), int(height), dirs)
+    _kernels()[3](forward, right, up, tan_x, width / height, int(width), int(height), 0, int(height), dirs)
     origins = np.empty_like(dirs)
     origins[:] = np.asarray(pose.position, dtype)
     return origins, dirs
 
 
-def _camera(forward, right, up, tan_x, aspect, width, height, out):
-    """Unit pixel-centre directions, the float64 operations of :func:`camera_rays_reference` in their order (numpy's
-    norm sums the squares as (x + y) + z), then cast to ``out``'s type."""
-    for i in range(height):
+def _camera(forward, right, up, tan_x, aspect, width, height, row0, row1, out):
+    """Unit pixel-centre directions of the rows ``row0:row1`` of the image (``out`` holds the whole image), the
+    float64 operations of :func:`camera_rays_reference` in their order (numpy's norm sums the squares as
+    (x + y) + z), then cast to ``out``'s type."""
+    for i in range(row0, row1):
         sy = (np.float64(i) + 0.5) / height
         py = -(2.0 * sy - 1.0) * tan_x / aspect
         for j in range(width):
@@ -272,7 +274,8 @@ def _surface(positions, normals, faces, prim, u, v, one, w0, ray_o, ray_d, use_r
 
 def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_material, face_kind, face_object,
             albedo_table, emission_table, uvs, tex_slot, tex_shape, tex_data, motion_on, prev_xform, prev_cam,
-            prev_basis, tan_x, aspect, width, position, geo, normal, albedo, emission, depth, material, kind, motion):
+            prev_basis, tan_x, aspect, width, height, first, position, geo, normal, albedo, emission, depth, material,
+            kind, motion):
     """The whole per-pixel G-buffer in one pass over the pixels (:func:`trace_primary`): for a hit, the attributes of
     :func:`surface_attributes` (barycentrics ``1 - u - v`` in float32, then float64; the position on the camera
     ray's plane intersection), the facing of :func:`facing`, constant albedo, front-facing emission, depth,
@@ -280,8 +283,8 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
     object; none when nothing is animated), projected as :func:`project` computes it, plain (x + y) + z dot
     products as on the device); background values for a miss. Albedo textures (``texture_table``) are looked up as
     :func:`lookup_texture` does: float64 UVs interpolated as :func:`_materials_reference` does, bilinear and repeating,
-    rounded to float32."""
-    height = prim.shape[0] // width
+    rounded to float32. The arrays hold the pixels from ``first`` on (row-major in a ``width`` x ``height`` image).
+    """
     for i in range(prim.shape[0]):
         f = prim[i]
         if f < 0:
@@ -335,8 +338,8 @@ def _pixels(positions, normals, faces, prim, u, v, t, cam, d64, dirs, face_mater
             z = lz if abs(lz) > 1e-12 else 1e-12
             x = 0.5 * (1.0 + lx / (z * tan_x)) * width
             y = 0.5 * (1.0 - ly * aspect / (z * tan_x)) * height
-            motion[i, 0] = np.float32(x - (np.float64(i % width) + 0.5))
-            motion[i, 1] = np.float32(y - (np.float64(i // width) + 0.5))
+            motion[i, 0] = np.float32(x - (np.float64((first + i) % width) + 0.5))
+            motion[i, 1] = np.float32(y - (np.float64((first + i) // width) + 0.5))
         else:
             motion[i, 0] = 0.0
             motion[i, 1] = 0.0
@@ -491,11 +494,11 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
     fov = scene.camera.fov_deg
-    # float64 rays give exact surface positions below; the tracers take their float32 rounding.
-    o64, d64 = camera_rays(pose, fov, width, height, dtype=np.float64)
-    dirs = d64.astype(np.float32)
-    hits = tracer.intersect(o64.astype(np.float32), dirs)
     n = width * height
+    # float64 rays give exact surface positions below; the tracers take their float32 rounding.
+    o64, d64 = np.empty((n, 3)), np.empty((n, 3))
+    o32, dirs = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    t, prim, u, v = np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
     position = np.empty((n, 3), np.float64)
     normal, geo, albedo, emission = (np.empty((n, 3), np.float32) for _ in range(4))
     depth = np.empty(n, np.float32)
@@ -506,14 +509,38 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
     prev_pose = scene.camera.pose_at(prev_t_s if motion_on else t_s)
     prev_xform = _previous_transforms(scene, t_s, prev_t_s) if motion_on and scene.object_animations \
         else np.zeros((0, 12))
-    _kernels()[2](np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
-                  scene.faces, hits.prim, hits.u, hits.v, hits.t, np.asarray(pose.position, np.float64), d64, dirs,
-                  scene.face_material, scene.face_kind_codes(), scene.face_object, *material_tables(scene),
-                  scene.uvs, *texture_table(scene), motion_on,
-                  prev_xform,
-                  np.asarray(prev_pose.position, np.float64), np.stack(prev_pose.basis()).astype(np.float64),
-                  float(np.tan(np.radians(fov) / 2.0)), width / height, width,
-                  position, geo, normal, albedo, emission, depth, material, kind, motion)
+    kern = _kernels()
+    basis = [np.asarray(b, np.float64) for b in pose.basis()]
+    tan_x = float(np.tan(np.radians(fov) / 2.0))
+    cam = np.asarray(pose.position, np.float64)
+    geometry = (np.ascontiguousarray(scene.positions_at(t_s)), np.ascontiguousarray(scene.normals_at(t_s)),
+                scene.faces)
+    materials = (scene.face_material, scene.face_kind_codes(), scene.face_object, *material_tables(scene), scene.uvs,
+                 *texture_table(scene), motion_on, prev_xform, np.asarray(prev_pose.position, np.float64),
+                 np.stack(prev_pose.basis()).astype(np.float64), tan_x, width / height, width, height)
+
+    def rays(r0, r1):
+        """The float64 and float32 camera rays of rows r0:r1."""
+        a, b = r0 * width, r1 * width
+        kern[3](*basis, tan_x, width / height, width, height, r0, r1, d64)
+        o64[a:b] = cam
+        o32[a:b] = o64[a:b]
+        dirs[a:b] = d64[a:b]
+
+    def pixels(r0, r1):
+        """The G-buffer fields of rows r0:r1 from their hits."""
+        a, b = r0 * width, r1 * width
+        kern[2](*geometry, prim[a:b], u[a:b], v[a:b], t[a:b], cam, d64[a:b], dirs[a:b], *materials, a,
+                position[a:b], geo[a:b], normal[a:b], albedo[a:b], emission[a:b], depth[a:b], material[a:b],
+                kind[a:b], motion[a:b])
+
+    def trace(r0, r1):
+        a, b = r0 * width, r1 * width
+        h = tracer.intersect(o32[a:b], dirs[a:b])
+        t[a:b], prim[a:b], u[a:b], v[a:b] = h.t, h.prim, h.u, h.v
+
+    pipelined_rows(height, width, rays, trace, pixels)
+    hits = Hits(t, prim, u, v)
     valid = hits.prim >= 0
     hw = (height, width)
     g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
@@ -522,6 +549,49 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
                 view_dir=dirs.reshape(*hw, 3), camera_position=np.asarray(pose.position, np.float32),
                 material=material.reshape(hw), kind=kind.reshape(hw))
     return g, o64, d64, hits
+
+
+# Pixels per chunk of the pipelined host passes (:func:`pipelined_rows`): at least this many, in at most
+# PIPELINE_CHUNKS chunks, so that a chunk's backend query outweighs its call overhead.
+PIPELINE_MIN_PIXELS = 8192
+PIPELINE_CHUNKS = 8
+
+
+def row_chunks(height: int, width: int) -> list:
+    """[(first row, end row)]: an image's rows in up to :data:`PIPELINE_CHUNKS` chunks of at least
+    :data:`PIPELINE_MIN_PIXELS` pixels (one chunk for a small image)."""
+    count = int(max(1, min(PIPELINE_CHUNKS, (height * width) // PIPELINE_MIN_PIXELS, height)))
+    bounds = np.linspace(0, height, count + 1).astype(int)
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def pipelined_rows(height: int, width: int, make, trace, finish) -> None:
+    """Runs ``make(r0, r1)`` (rays), ``trace(r0, r1)`` and ``finish(r0, r1)`` (what is computed from the hits) over
+    the image's row chunks (:func:`row_chunks`), pipelined: the caller's thread traces chunk k while one worker
+    finishes chunk k - 1 and makes chunk k + 1 (compiled passes that release the GIL). Every chunk sees the same
+    calls as a pass over the whole image would make for its rows, so the results do not depend on the chunking.
+    The backend is queried from the caller's thread only, one chunk after the other."""
+    chunks = row_chunks(height, width)
+    if len(chunks) == 1:
+        make(*chunks[0])
+        trace(*chunks[0])
+        finish(*chunks[0])
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    def worker(k):
+        if k > 0:
+            finish(*chunks[k - 1])
+        if k + 1 < len(chunks):
+            make(*chunks[k + 1])
+
+    make(*chunks[0])
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for k in range(len(chunks)):
+            pending = pool.submit(worker, k)
+            trace(*chunks[k])
+            pending.result()
+    finish(*chunks[-1])
 
 
 _PACKED_TEXTURES: dict = {}  # ids of a scene's albedo textures -> (the textures, their packed table)

@@ -144,3 +144,24 @@ def test08_the_one_pass_gbuffer_gives_the_bits_of_the_numpy_composition(name):
     centres = np.stack([idx % w + 0.5, idx // w + 0.5], axis=-1)
     np.testing.assert_allclose(flat(g.motion)[idx], xy - centres, atol=1e-4)
     assert moved == (name == "arena")
+
+
+@pytest.mark.parametrize("name", ["gallery", "arena"])
+def test09_the_gbuffer_made_in_pipelined_row_chunks_is_the_one_made_whole(name, monkeypatch):
+    """The host G-buffer traces row chunks while a worker makes the next chunk's rays and finishes the previous
+    one's pixels: every field, motion vectors included (arena moves), equals the G-buffer made in one chunk."""
+    from suite.core import gbuffer
+
+    scene = load(name)
+    tracer = make("embree", scene)
+    size = (96, 61)
+    assert len(gbuffer.row_chunks(61, 96)) == 1  # 5856 pixels: one chunk at the default size
+    whole = render_gbuffer(scene, tracer, 0.5, size, 0.45)
+    monkeypatch.setattr(gbuffer, "PIPELINE_MIN_PIXELS", 500)
+    chunks = gbuffer.row_chunks(61, 96)
+    assert len(chunks) == gbuffer.PIPELINE_CHUNKS and chunks[0][0] == 0 and chunks[-1][1] == 61
+    assert all(a[1] == b[0] for a, b in zip(chunks[:-1], chunks[1:]))
+    piped = render_gbuffer(scene, tracer, 0.5, size, 0.45)
+    for field in ("position", "normal", "geo_normal", "albedo", "emission", "depth", "prim", "valid", "motion",
+                  "view_dir", "material", "kind"):
+        assert np.array_equal(getattr(whole, field), getattr(piped, field)), field

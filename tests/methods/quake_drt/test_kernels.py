@@ -210,3 +210,22 @@ def test07_the_direct_stage_does_not_depend_on_its_chunking(monkeypatch):
     assert _same(whole, chunked) and _same(whole, small)
     assert st_whole == st_chunked == st_small
     assert st_whole.rays > 4096
+
+
+def test08_pipelined_shading_samples_equal_the_whole_image_passes(monkeypatch):
+    """The primary stage's jittered shading rays are made, traced and shaded in row chunks, pipelined: the samples
+    equal surface_from_hits of the whole image's rays and hits, textured scenes included."""
+    from suite.core import gbuffer
+
+    monkeypatch.setattr(gbuffer, "PIPELINE_MIN_PIXELS", 300)
+    for scene in _scenes():
+        tracer = make("embree", scene)
+        w, h = 64, 40
+        seeds = pixel_seeds(9, w, h).reshape(-1)
+        o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
+        hits = tracer.intersect(o, d.astype(np.float32))
+        whole = primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+        assert len(gbuffer.row_chunks(h, w)) > 1
+        _, piped = primary.primary_stage(scene, tracer, 0.0, None, (w, h), seeds, jitter=True)
+        for field in SURFACE_FIELDS:
+            assert _same(getattr(whole, field), getattr(piped, field)), field
