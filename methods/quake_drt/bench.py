@@ -5,10 +5,11 @@ Parts (``--parts``, default all), printed and stored in ``<results>/bench/quake_
 running anything:
 
 ``rays``
-    Rays per second of the two tracing stages against the backend's raw rate on the very same rays, median of
-    ``--repeats``: the primary stage (G-buffer plus anti-aliased shading rays, attributes, overlays) against the
-    raw closest-hit query on its camera rays; the direct stage (light rows, subsampling, ray generation, shadow
-    rays, accumulation) against the raw occlusion query on the rays it generated (captured from an untimed run).
+    Rays per second of the two tracing stages against the backend's raw rate on the very same rays, medians of
+    ``--repeats`` calls of stage and raw in turn: the primary stage (G-buffer plus anti-aliased shading rays,
+    attributes, overlays) against the raw closest-hit query on its two camera ray sets; the direct stage (light
+    rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
+    generated (captured from an untimed run).
     Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct stage has work.
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
@@ -52,6 +53,18 @@ def _median_ms(fn, repeats: int):
         result = fn()
         times.append(time.perf_counter() - t0)
     return 1e3 * float(np.median(times)), result
+
+
+def _interleaved_ms(stage, raw, repeats: int) -> tuple[float, float]:
+    """(median ms of ``stage``, median ms of ``raw``) over ``repeats`` calls of each in turn, after one warm-up."""
+    stage(), raw()
+    s_ms, r_ms = [], []
+    for _ in range(max(1, repeats)):
+        for fn, acc in ((stage, s_ms), (raw, r_ms)):
+            t0 = time.perf_counter()
+            fn()
+            acc.append(1e3 * (time.perf_counter() - t0))
+    return float(np.median(s_ms)), float(np.median(r_ms))
 
 
 def load_scene(name: str):
@@ -107,29 +120,40 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int) -> dict:
     f = _Frame(scene, tracer, resolution, t_s, num_random_dl=0, denoiser=False, taa=False)
     from methods.quake_drt import primary
 
-    def prim():
-        return primary.primary_stage(scene, tracer, t_s, None, (f.w, f.h), f.seeds(), f.settings.antialiasing)
+    seeds = f.seeds()  # made before the stage, as the pipeline makes them
 
-    prim_ms, _ = _median_ms(prim, repeats)
+    def prim():
+        return primary.primary_stage(scene, tracer, t_s, None, (f.w, f.h), seeds, f.settings.antialiasing)
+
+    from suite.core.gbuffer import camera_rays as pixel_centre_rays
+
+    # The stage's two ray sets: the shading rays (jittered) and the G-buffer's pixel-centre rays.
+    o, d = primary.camera_rays(scene, t_s, f.w, f.h, seeds, f.settings.antialiasing)
+    oc, dc = pixel_centre_rays(scene.camera.pose_at(t_s), scene.camera.fov_deg, f.w, f.h, dtype=np.float64)
+    sets = [as_rays(a.astype(np.float32), b.astype(np.float32), 0.0, np.inf, tracer.shift) for a, b in ((o, d), (oc, dc))]
+    raw_rays = int(sum(len(r[1]) for r in sets))
+
+    def raw_primary():
+        for ro, rd, _, rlen in sets:
+            tracer.raw_intersect(ro, rd, rlen.copy())  # embreex overwrites the lengths it is given
+
+    prim_ms, raw_prim_ms = _interleaved_ms(prim, raw_primary, repeats)  # interleaved: noise hits both alike
     prim_rays = f.rays(prim)
-    o, d = primary.camera_rays(scene, t_s, f.w, f.h, f.seeds(), f.settings.antialiasing)
-    ro, rd, _, rlen = as_rays(o.astype(np.float32), d.astype(np.float32), 0.0, np.inf, tracer.shift)
-    raw_prim_ms, _ = _median_ms(lambda: tracer.raw_intersect(ro, rd, rlen), repeats)
     out = {"primary": {"ms": prim_ms, "rays": prim_rays, "rays_per_s": prim_rays / (prim_ms / 1e3),
-                       "raw_ms": raw_prim_ms, "raw_rays": int(len(ro)),
-                       "raw_rays_per_s": len(ro) / (raw_prim_ms / 1e3),
-                       "ratio": (prim_rays / prim_ms) / (len(ro) / raw_prim_ms)}}
+                       "raw_ms": raw_prim_ms, "raw_rays": raw_rays, "raw_rays_per_s": raw_rays / (raw_prim_ms / 1e3),
+                       "ratio": (prim_rays / prim_ms) / (raw_rays / raw_prim_ms)}}
     raw = f.raw()
     captured = []
     f.direct(raw, capture=captured)
     o_all = np.concatenate([c[0] for c in captured]) if captured else np.zeros((0, 3), np.float32)
     d_all = np.concatenate([c[1] for c in captured]) if captured else np.zeros((0, 3), np.float32)
     l_all = np.concatenate([c[2] for c in captured]) if captured else np.zeros(0, np.float32)
-    dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
     dir_rays = f.rays(lambda: f.direct(raw))
     if len(o_all):
-        raw_ms, _ = _median_ms(lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()), repeats)
+        dir_ms, raw_ms = _interleaved_ms(lambda: f.direct(raw), lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()),
+                                         repeats)
     else:
+        dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
         raw_ms = float("nan")
     out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3), "raw_ms": raw_ms,
                      "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
