@@ -83,7 +83,9 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     out = {"backend": backend, "scene": scene.name, "rays": n, "repeats": repeats}
     numpy_fns = {
         "occluded": (lambda: tracer.occluded(o, d, 0.0, tmax), lambda: tracer.raw_occluded(ro, rd, rlen)),
-        "intersect": (lambda: tracer.intersect(o, d, 0.0, tmax), lambda: tracer.raw_intersect(ro, rd, rlen))}
+        # embreex writes hit distances into the lengths it is given: the raw closest-hit call takes a fresh copy
+        # (as the suite's query does internally), or its later calls would trace shortened rays
+        "intersect": (lambda: tracer.intersect(o, d, 0.0, tmax), lambda: tracer.raw_intersect(ro, rd, rlen.copy()))}
     def queries(fn) -> float:
         """Backend queries per ray the suite makes (1, plus the alpha walk's closest-hit queries)."""
         before = sum(tracer.counters.values())
