@@ -244,34 +244,40 @@ def _past(t, scale32):
     return np.nextafter(t * scale32, np.float32(np.inf))
 
 
-def _peel_step(prim, t, u, v, idx, lay, queries, keep_mask, use_keep, layers, max_queries, scale32, t_out, p_out,
-               u_out, v_out, origins, dirs, idx_out, lay_out, queries_out, start_out, o_out, d_out):
-    """One closest-hit query of the depth peeling (§4.1.2) taken in, for rays at different layers: ray i (pixel
-    ``idx[i]``) is at layer ``lay[i]`` and has made ``queries[i]`` queries there. A hit on a kept triangle (any hit
-    without ``use_keep``) becomes the pixel's fragment of that layer, and the ray goes on to the next layer from
-    just past it (while layers remain); a hit outside the PVS is stepped over, the ray traced again in the same
-    layer from just past it (up to ``max_queries`` queries per layer: a ray that meets only triangles outside the
-    PVS that often ends there); a miss ends the ray. Every ray makes the queries it would make layer by layer (the
-    same origins, directions and tmin), so the layers do not depend on how the queries are batched. The rays to
-    trace next are compacted into the ``*_out`` arrays (``idx`` etc. may be those arrays themselves), origins and
-    directions gathered from ``origins`` / ``dirs``. Returns their count."""
+def _peel_hits(prim, t, u, v, idx, keep_mask, use_keep, k, scale32, t_out, p_out, u_out, v_out, origins, dirs,
+               idx_out, start_out, o_out, d_out):
+    """One closest-hit query of layer ``k`` of the depth peeling (§4.1.2) taken in: a hit on a kept triangle (any
+    hit without ``use_keep``) becomes the ray's fragment of layer k; a hit outside the PVS is stepped over, the ray
+    (pixel ``idx[i]``) compacted into the next query from just past it, its origin and direction gathered from
+    ``origins`` / ``dirs``; a miss ends the ray. ``idx`` may be ``idx_out`` itself (compaction in place). Returns
+    the number of rays to trace again."""
     c = 0
     for i in range(len(prim)):
         f = prim[i]
         if f < 0:
             continue
-        j, k = idx[i], lay[i]
+        j = idx[i]
         if not use_keep or keep_mask[f]:
             t_out[k, j], p_out[k, j], u_out[k, j], v_out[k, j] = t[i], f, u[i], v[i]
-            if k + 1 >= layers:
-                continue
-            lay_out[c], queries_out[c] = k + 1, 1
-        else:
-            if queries[i] >= max_queries:
-                continue
-            lay_out[c], queries_out[c] = k, queries[i] + 1
+            continue
         idx_out[c] = j
         start_out[c] = _past(t[i], scale32)
+        for a in range(3):
+            o_out[c, a] = origins[j, a]
+            d_out[c, a] = dirs[j, a]
+        c += 1
+    return c
+
+
+def _peel_next(p_k, t_k, scale32, origins, dirs, idx_out, start_out, o_out, d_out):
+    """The rays of the next layer: every pixel with a fragment in this layer (``p_k >= 0``), from just past it.
+    Returns their count."""
+    c = 0
+    for j in range(len(p_k)):
+        if p_k[j] < 0:
+            continue
+        idx_out[c] = j
+        start_out[c] = _past(t_k[j], scale32)
         for a in range(3):
             o_out[c, a] = origins[j, a]
             d_out[c, a] = dirs[j, a]
@@ -293,8 +299,8 @@ def jit():
         # the helpers are compiled first: the passes that call them are typed against the compiled versions
         global _offset_origin, _choose_light, _past
         _offset_origin, _choose_light, _past = j(_offset_origin), j(_choose_light), j(_past)
-        _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_step,
-                                                 _shade_point_lights)}
+        _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
+                                                 _peel_next, _shade_point_lights)}
     return _compiled
 
 
@@ -318,7 +324,8 @@ def warm_up() -> None:
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
     k["_shade_point_lights"](f64, f64, f64, f64, np.zeros((1, 1), np.bool_), 1.0, f32.copy())
-    k["_peel_step"](np.zeros(1, np.int32), one32, one32, one32, i64, i64, i64, b, True, 1, 1, np.float32(1),
-                    np.zeros((1, 1), np.float32), np.zeros((1, 1), np.int64), np.zeros((1, 1), np.float32),
-                    np.zeros((1, 1), np.float32), f32, f32, i64.copy(), i64.copy(), i64.copy(), one32.copy(),
-                    f32.copy(), f32.copy())
+    k["_peel_hits"](np.zeros(1, np.int32), one32, one32, one32, i64, b, True, 0, np.float32(1), np.zeros((1, 1), np.float32),
+                    np.zeros((1, 1), np.int64), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32), f32, f32,
+                    i64.copy(), one32.copy(), f32.copy(), f32.copy())
+    k["_peel_next"](np.zeros(1, np.int64), one32, np.float32(1), f32, f32, i64.copy(), one32.copy(), f32.copy(),
+                    f32.copy())

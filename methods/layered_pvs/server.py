@@ -144,11 +144,8 @@ def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=Non
     the PVS: a hit on another triangle is stepped over and the ray traced again from just past it (secondary and
     shadow rays are not affected). ``intersect(o, d, tmin) -> Hits``; origins and directions float32 (N, 3).
 
-    Between queries, one compiled pass (:func:`methods.layered_pvs.kernels._peel_step`) takes in the hits and
-    gathers the next query's rays into buffers allocated once. A query takes every ray still going, whatever its
-    layer (a ray that found its layer-k fragment goes on to layer k + 1 in the next query while other rays still
-    step over triangles outside the PVS): fewer, larger queries, the same rays. A ``keep`` callable takes
-    :func:`peel_reference` instead."""
+    Between queries, one compiled pass (:mod:`methods.layered_pvs.kernels`) takes in the hits and gathers the
+    next query's rays into buffers allocated once; a ``keep`` callable takes :func:`peel_reference` instead."""
     if keep is not None and keep_mask is None:
         return peel_reference(intersect, origins, dirs, layers, keep, max_skips, shape)
     kern = kernels.jit()
@@ -161,18 +158,22 @@ def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=Non
     mask = np.ascontiguousarray(keep_mask, np.bool_) if use_keep else np.zeros(1, np.bool_)
     origins, dirs = np.ascontiguousarray(origins), np.ascontiguousarray(dirs)
     scale32 = np.float32(1 + PEEL_REL_EPS)
-    idx_b, lay_b, queries_b = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
-    start_b, o_b, d_b = np.empty(n, np.float32), np.empty_like(origins), np.empty_like(dirs)
-    # Every pixel from the camera at layer 0 (the per-ray tmin array as the reference passes it); then each query
-    # takes every ray still going, whatever its layer (kernels._peel_step).
-    idx, lay, queries = np.arange(n), np.zeros(n, np.int64), np.ones(n, np.int64)
-    start, o, d, m = np.zeros(n, np.float32), origins, dirs, n
-    while m and layers > 0:
-        h = intersect(o[:m], d[:m], start[:m])
-        m = kern["_peel_step"](h.prim, h.t, h.u, h.v, idx[:m], lay[:m], queries[:m], mask, use_keep, layers,
-                               max_skips, scale32, t_out, p_out, u_out, v_out, origins, dirs, idx_b, lay_b,
-                               queries_b, start_b, o_b, d_b)
-        idx, lay, queries, start, o, d = idx_b, lay_b, queries_b, start_b, o_b, d_b
+    idx_b, start_b = np.empty(n, np.int64), np.empty(n, np.float32)
+    o_b, d_b = np.empty_like(origins), np.empty_like(dirs)
+    # Layer 0: every pixel from the camera (the per-ray tmin array as the reference passes it).
+    idx, start, o, d, m = np.arange(n), np.zeros(n, np.float32), origins, dirs, n
+    for k in range(layers):
+        for _ in range(max_skips):
+            if m == 0:
+                break
+            h = intersect(o[:m], d[:m], start[:m])
+            m = kern["_peel_hits"](h.prim, h.t, h.u, h.v, idx[:m], mask, use_keep, k, scale32, t_out, p_out, u_out,
+                                   v_out, origins, dirs, idx_b, start_b, o_b, d_b)
+            idx, start, o, d = idx_b, start_b, o_b, d_b
+        m = kern["_peel_next"](p_out[k], t_out[k], scale32, origins, dirs, idx_b, start_b, o_b, d_b)
+        idx, start, o, d = idx_b, start_b, o_b, d_b
+        if m == 0:
+            break
     shp = (layers,) + tuple(shape) if shape is not None else (layers, n)
     return Layers(t_out.reshape(shp), p_out.reshape(shp), u_out.reshape(shp), v_out.reshape(shp))
 
