@@ -155,7 +155,6 @@ def lookup_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
 _compiled = None  # the numba versions of the per-hit passes below, compiled on first use
 _hit_geometry_jit = None  # the compiled _hit_geometry, which the compiled passes call (bound before they compile)
 _texel_jit = None  # the compiled _texel, likewise
-_bilinear_jit = None  # the compiled _bilinear, which _texel calls
 
 
 def _hit_geometry(positions, normals, f0, f1, f2, a, b, c, use_ray, rox, roy, roz, rdx, rdy, rdz):
@@ -227,21 +226,20 @@ def _texel(uvs, f0, f1, f2, a, b1, b2, slot, tex_shape, tex_data):
         y0i %= h
     x1i = x0i + 1 if x0i + 1 < w else 0
     y1i = y0i + 1 if y0i + 1 < h else 0
-    # The three channels as a tuple (an array here would be a heap allocation per hit): one channel repeated for
-    # a single-channel texture.
+    # The bilinear weights and the four texels' offsets once for the three channels (the products in
+    # lookup_texture's order: ((1 - fx) * (1 - fy)) * t00, ...); the channels as a tuple (an array here would be a
+    # heap allocation per hit), one channel repeated for a single-channel texture.
+    w00, w10, w01, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    i00, i10 = off + (y0i * w + x0i) * c, off + (y0i * w + x1i) * c
+    i01, i11 = off + (y1i * w + x0i) * c, off + (y1i * w + x1i) * c
     c1, c2 = (1, 2) if c > 1 else (0, 0)
-    return (_bilinear_jit(tex_data, off, w, c, 0, x0i, x1i, y0i, y1i, fx, fy),
-            _bilinear_jit(tex_data, off, w, c, c1, x0i, x1i, y0i, y1i, fx, fy),
-            _bilinear_jit(tex_data, off, w, c, c2, x0i, x1i, y0i, y1i, fx, fy))
-
-
-def _bilinear(tex_data, off, w, c, ch, x0i, x1i, y0i, y1i, fx, fy):
-    """Channel ``ch`` of the bilinear blend of four texels (:func:`lookup_texture`'s order), rounded to float32."""
-    t00 = np.float64(tex_data[off + (y0i * w + x0i) * c + ch])
-    t10 = np.float64(tex_data[off + (y0i * w + x1i) * c + ch])
-    t01 = np.float64(tex_data[off + (y1i * w + x0i) * c + ch])
-    t11 = np.float64(tex_data[off + (y1i * w + x1i) * c + ch])
-    return np.float32((((1 - fx) * (1 - fy) * t00 + fx * (1 - fy) * t10) + (1 - fx) * fy * t01) + fx * fy * t11)
+    f64 = np.float64
+    return (np.float32(((w00 * f64(tex_data[i00]) + w10 * f64(tex_data[i10])) + w01 * f64(tex_data[i01]))
+                      + w11 * f64(tex_data[i11])),
+            np.float32(((w00 * f64(tex_data[i00 + c1]) + w10 * f64(tex_data[i10 + c1])) + w01 * f64(tex_data[i01 + c1]))
+                       + w11 * f64(tex_data[i11 + c1])),
+            np.float32(((w00 * f64(tex_data[i00 + c2]) + w10 * f64(tex_data[i10 + c2])) + w01 * f64(tex_data[i01 + c2]))
+                       + w11 * f64(tex_data[i11 + c2])))
 
 
 def _surface(positions, normals, faces, prim, u, v, one, w0, ray_o, ray_d, use_ray, face_material, albedo_table,
@@ -350,13 +348,12 @@ def _kernels():
     or pixels, compiled on first use): every float64 operation in the order of the numpy expressions of
     :func:`surface_attributes_reference` / :func:`camera_rays_reference` and of the Dr.Jit G-buffer, so they give
     the same bits (motion vectors: the Dr.Jit G-buffer's order)."""
-    global _compiled, _hit_geometry_jit, _texel_jit, _bilinear_jit
+    global _compiled, _hit_geometry_jit, _texel_jit
     if _compiled is None:
         import numba
 
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
         _hit_geometry_jit = jit(_hit_geometry)
-        _bilinear_jit = jit(_bilinear)
         _texel_jit = jit(_texel)
         _compiled = (jit(_surface), jit(_facing), jit(_pixels), jit(_camera))
     return _compiled
