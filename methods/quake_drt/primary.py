@@ -433,12 +433,13 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
     skip = None if overlay_kind is None else overlay_kind > 0
     textures = _texture_table(scene)
     if jitter and aperture_m <= 0.0 and skip is None and textures is not None:
-        # Jittered pinhole rays without overlays: both ray sets pipelined in row chunks (the backend traces one
-        # chunk while a worker makes the next chunk's rays and the previous chunk's surfaces).
+        # Jittered pinhole rays without overlays: both ray sets in one pipeline of row chunks (the backend traces
+        # one chunk while a worker makes the next chunk's rays and the previous chunk's surfaces or pixels).
         tracer.update(t_s)
-        s = _shading_samples(scene, tracer, t_s, width, height, seeds, textures)
-        g, _, _, _ = trace_primary(scene, tracer, t_s, (width, height), prev_t_s)
-        return g, s
+        shading_steps, s = _shading_steps(scene, tracer, t_s, width, height, seeds, textures)
+        gbuffer_steps, gbuffer = _gbuffer.primary_steps(scene, tracer, t_s, width, height, prev_t_s)
+        _gbuffer.pipelined(shading_steps + gbuffer_steps)
+        return gbuffer()[0], s
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending, layers = None, []
         if jitter or aperture_m > 0.0:
@@ -474,9 +475,10 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
     return g, s
 
 
-def _shading_samples(scene, tracer, t_s: float, width: int, height: int, seeds: np.ndarray, textures) -> Surface:
-    """:func:`surface_from_hits` of the jittered pinhole rays of :func:`camera_rays`, made, traced and shaded in row
-    chunks (:func:`suite.core.gbuffer.pipelined_rows`): the same rays, queries and bits as the whole-image passes."""
+def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np.ndarray, textures):
+    """``(steps, samples)``: :func:`surface_from_hits` of the jittered pinhole rays of :func:`camera_rays` as
+    pipeline steps over row chunks (:func:`suite.core.gbuffer.pipelined`; the same rays, queries and bits as the
+    whole-image passes), and the Surface they fill."""
     pose = scene.camera.pose_at(t_s)
     basis = [np.asarray(b, np.float64) for b in pose.basis()]
     seeds = np.asarray(seeds, np.uint32).reshape(-1)
@@ -503,8 +505,7 @@ def _shading_samples(scene, tracer, t_s: float, width: int, height: int, seeds: 
         a, b = r0 * width, r1 * width
         _fill_surface(scene, t_s, textures, s, a, b, prim[a:b], u[a:b], v[a:b], t[a:b])
 
-    _gbuffer.pipelined_rows(height, width, make, trace, finish)
-    return s
+    return _gbuffer.row_steps(height, width, make, trace, finish), s
 
 
 def _raw_normal_materials(scene) -> np.ndarray:

@@ -488,6 +488,15 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
         dg = device_gbuffer(scene, tracer, t_s, (width, height), prev_t_s, keep_hits=True)
         o64, d64 = camera_rays(scene.camera.pose_at(t_s), scene.camera.fov_deg, width, height, dtype=np.float64)
         return dg.to_host_twin(), o64, d64, dg.hits_to_host()
+    steps, result = primary_steps(scene, tracer, t_s, width, height, prev_t_s)
+    pipelined(steps)
+    return result()
+
+
+def primary_steps(scene, tracer, t_s: float, width: int, height: int, prev_t_s: float | None = None):
+    """The host path of :func:`trace_primary` as pipeline steps: ``(steps, result)``, the steps per row chunk for
+    :func:`pipelined` (which may run them together with other images' steps) and ``result()`` giving
+    ``(g, origins, dirs, hits)`` once they ran."""
     tracer.update(t_s)
     pose = scene.camera.pose_at(t_s)
     fov = scene.camera.fov_deg
@@ -536,19 +545,22 @@ def trace_primary(scene, tracer, t_s: float, resolution=None, prev_t_s: float | 
         h = tracer.intersect(o32[a:b], dirs[a:b])
         t[a:b], prim[a:b], u[a:b], v[a:b] = h.t, h.prim, h.u, h.v
 
-    pipelined_rows(height, width, rays, trace, pixels)
-    hits = Hits(t, prim, u, v)
-    valid = hits.prim >= 0
-    hw = (height, width)
-    g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3), geo_normal=geo.reshape(*hw, 3),
-                albedo=albedo.reshape(*hw, 3), emission=emission.reshape(*hw, 3), depth=depth.reshape(hw),
-                prim=hits.prim.reshape(hw), valid=valid.reshape(hw), motion=motion.reshape(*hw, 2),
-                view_dir=dirs.reshape(*hw, 3), camera_position=np.asarray(pose.position, np.float32),
-                material=material.reshape(hw), kind=kind.reshape(hw))
-    return g, o64, d64, hits
+    def result():
+        hits = Hits(t, prim, u, v)
+        valid = hits.prim >= 0
+        hw = (height, width)
+        g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3),
+                    geo_normal=geo.reshape(*hw, 3), albedo=albedo.reshape(*hw, 3),
+                    emission=emission.reshape(*hw, 3), depth=depth.reshape(hw), prim=hits.prim.reshape(hw),
+                    valid=valid.reshape(hw), motion=motion.reshape(*hw, 2), view_dir=dirs.reshape(*hw, 3),
+                    camera_position=np.asarray(pose.position, np.float32), material=material.reshape(hw),
+                    kind=kind.reshape(hw))
+        return g, o64, d64, hits
+
+    return row_steps(height, width, rays, trace, pixels), result
 
 
-# Pixels per chunk of the pipelined host passes (:func:`pipelined_rows`): at least this many, in at most
+# Pixels per chunk of the pipelined host passes (:func:`row_steps`): at least this many, in at most
 # PIPELINE_CHUNKS chunks, so that a chunk's backend query outweighs its call overhead.
 PIPELINE_MIN_PIXELS = 8192
 PIPELINE_CHUNKS = 8
@@ -562,33 +574,41 @@ def row_chunks(height: int, width: int) -> list:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def pipelined_rows(height: int, width: int, make, trace, finish) -> None:
-    """Runs ``make(r0, r1)`` (rays), ``trace(r0, r1)`` and ``finish(r0, r1)`` (what is computed from the hits) over
-    the image's row chunks (:func:`row_chunks`), pipelined: the caller's thread traces chunk k while one worker
-    finishes chunk k - 1 and makes chunk k + 1 (compiled passes that release the GIL). Every chunk sees the same
-    calls as a pass over the whole image would make for its rows, so the results do not depend on the chunking.
-    The backend is queried from the caller's thread only, one chunk after the other."""
-    chunks = row_chunks(height, width)
-    if len(chunks) == 1:
-        make(*chunks[0])
-        trace(*chunks[0])
-        finish(*chunks[0])
+def row_steps(height: int, width: int, make, trace, finish) -> list:
+    """Pipeline steps (:func:`pipelined`) over an image's row chunks (:func:`row_chunks`): per chunk, ``make(r0,
+    r1)`` (its rays), ``trace(r0, r1)`` and ``finish(r0, r1)`` (what is computed from its hits)."""
+    from functools import partial
+
+    return [(partial(make, a, b), partial(trace, a, b), partial(finish, a, b)) for a, b in row_chunks(height, width)]
+
+
+def pipelined(steps) -> None:
+    """Runs ``[(make, trace, finish)]`` steps pipelined: the caller's thread traces step k while one worker finishes
+    step k - 1 and makes step k + 1 (compiled passes that release the GIL). Each step's calls are the ones a pass
+    over its whole image would make for its rows, so the results do not depend on the chunking (nor on the
+    images whose steps share the pipeline). The backend is queried from the caller's thread only, one step after
+    the other."""
+    if not steps:
+        return
+    if len(steps) == 1:
+        for call in steps[0]:
+            call()
         return
     from concurrent.futures import ThreadPoolExecutor
 
     def worker(k):
         if k > 0:
-            finish(*chunks[k - 1])
-        if k + 1 < len(chunks):
-            make(*chunks[k + 1])
+            steps[k - 1][2]()
+        if k + 1 < len(steps):
+            steps[k + 1][0]()
 
-    make(*chunks[0])
+    steps[0][0]()
     with ThreadPoolExecutor(max_workers=1) as pool:
-        for k in range(len(chunks)):
+        for k in range(len(steps)):
             pending = pool.submit(worker, k)
-            trace(*chunks[k])
+            steps[k][1]()
             pending.result()
-    finish(*chunks[-1])
+    steps[-1][2]()
 
 
 _PACKED_TEXTURES: dict = {}  # ids of a scene's albedo textures -> (the textures, their packed table)
