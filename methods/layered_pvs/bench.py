@@ -50,8 +50,8 @@ class RecordingTracer:
     def _keep(self, kind, o, d, tmin, tmax):
         from suite.core.trace.base import as_rays
 
-        ro, rd, _, rlen = as_rays(np.array(o), np.array(d), np.array(tmin), np.array(tmax), self.shift)
-        self.log.append((kind, ro, rd.copy(), rlen.copy()))
+        ro, rd, _, rlen = as_rays(o, d, tmin, tmax, self.shift)  # fresh origins and lengths (no scratch buffers)
+        self.log.append((kind, ro, np.array(rd), rlen))  # the directions may be the caller's own array
 
     def intersect(self, o, d, tmin=0.0, tmax=np.inf):
         self._keep("i", o, d, tmin, tmax)

@@ -260,13 +260,18 @@ def _peel_hits(prim, t, u, v, idx, keep_mask, use_keep, k, scale32, t_out, p_out
         if not use_keep or keep_mask[f]:
             t_out[k, j], p_out[k, j], u_out[k, j], v_out[k, j] = t[i], f, u[i], v[i]
             continue
-        idx_out[c] = j
-        start_out[c] = _past(t[i], scale32)
-        for a in range(3):
-            o_out[c, a] = origins[j, a]
-            d_out[c, a] = dirs[j, a]
+        _queue_ray(c, j, _past(t[i], scale32), origins, dirs, idx_out, start_out, o_out, d_out)
         c += 1
     return c
+
+
+def _queue_ray(c, j, start, origins, dirs, idx_out, start_out, o_out, d_out):
+    """Slot ``c`` of the next query: pixel ``j``'s ray (its origin and direction) from ``start`` on."""
+    idx_out[c] = j
+    start_out[c] = start
+    for a in range(3):
+        o_out[c, a] = origins[j, a]
+        d_out[c, a] = dirs[j, a]
 
 
 def _peel_next(p_k, t_k, scale32, origins, dirs, idx_out, start_out, o_out, d_out):
@@ -276,11 +281,7 @@ def _peel_next(p_k, t_k, scale32, origins, dirs, idx_out, start_out, o_out, d_ou
     for j in range(len(p_k)):
         if p_k[j] < 0:
             continue
-        idx_out[c] = j
-        start_out[c] = _past(t_k[j], scale32)
-        for a in range(3):
-            o_out[c, a] = origins[j, a]
-            d_out[c, a] = dirs[j, a]
+        _queue_ray(c, j, _past(t_k[j], scale32), origins, dirs, idx_out, start_out, o_out, d_out)
         c += 1
     return c
 
@@ -297,8 +298,8 @@ def jit():
         # error_model="numpy": IEEE division (the divisors are clamped or unit lengths) without per-division checks.
         j = numba.njit(cache=True, nogil=True, error_model="numpy")
         # the helpers are compiled first: the passes that call them are typed against the compiled versions
-        global _offset_origin, _choose_light, _past
-        _offset_origin, _choose_light, _past = j(_offset_origin), j(_choose_light), j(_past)
+        global _offset_origin, _choose_light, _past, _queue_ray
+        _offset_origin, _choose_light, _past, _queue_ray = j(_offset_origin), j(_choose_light), j(_past), j(_queue_ray)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
                                                  _peel_next, _shade_point_lights)}
     return _compiled

@@ -89,9 +89,10 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
     scene), marked and compacted (the prefix sum of the thesis = ``np.nonzero`` of the marks). Sorted ids.
 
     A view equal to an earlier one (the extrapolated views of a camera with no known motion) adds nothing and is
-    not traced again. A worker makes the next view's camera rays (compiled, the GIL released) while the backend
-    traces the current one's."""
-    from concurrent.futures import ThreadPoolExecutor
+    not traced again. The views run through the host pipeline (:func:`suite.core.gbuffer.pipelined`): a worker
+    makes the next view's camera rays (compiled, the GIL released) and marks the previous view's ids while the
+    backend traces the current one's."""
+    from suite.core.gbuffer import pipelined
 
     marks = np.zeros(tracer.scene.num_faces, bool)
     distinct = {}
@@ -99,23 +100,24 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
         key = tuple(np.concatenate([np.asarray(v, np.float64).reshape(3) for v in (pose.position, pose.target,
                                                                                     pose.up)]))
         distinct.setdefault(key, pose)
-    distinct = list(distinct.values())
-    if not distinct:
-        return np.zeros(0, np.int64)
+    rays, hits = {}, {}
 
-    def rays(pose):
-        # float32 rays straight from the compiled camera pass (its float64 directions rounded once, as a float64
-        # pass and a cast would give them, without the two extra copies)
-        return camera_rays(pose, fov_deg, width, height, dtype=np.float32)
+    def step(i, pose):
+        def make():
+            # float32 rays straight from the compiled camera pass (its float64 directions rounded once, as a
+            # float64 pass and a cast would give them, without the two extra copies)
+            rays[i] = camera_rays(pose, fov_deg, width, height, dtype=np.float32)
 
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(rays, distinct[0])
-        for i in range(len(distinct)):
-            o, d = pending.result()
-            if i + 1 < len(distinct):
-                pending = pool.submit(rays, distinct[i + 1])
-            hits = tracer.intersect(o, d)
-            marks[hits.prim[hits.prim >= 0]] = True
+        def trace():
+            hits[i] = tracer.intersect(*rays.pop(i)).prim
+
+        def finish():
+            prim = hits.pop(i)
+            marks[prim[prim >= 0]] = True
+
+        return make, trace, finish
+
+    pipelined([step(i, pose) for i, pose in enumerate(distinct.values())])
     return np.nonzero(marks)[0].astype(np.int64)
 
 

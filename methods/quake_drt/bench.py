@@ -56,15 +56,11 @@ def _median_ms(fn, repeats: int):
 
 
 def _interleaved_ms(stage, raw, repeats: int) -> tuple[float, float]:
-    """(median ms of ``stage``, median ms of ``raw``) over ``repeats`` calls of each in turn, after one warm-up."""
-    stage(), raw()
-    s_ms, r_ms = [], []
-    for _ in range(max(1, repeats)):
-        for fn, acc in ((stage, s_ms), (raw, r_ms)):
-            t0 = time.perf_counter()
-            fn()
-            acc.append(1e3 * (time.perf_counter() - t0))
-    return float(np.median(s_ms)), float(np.median(r_ms))
+    """(median ms of ``stage``, median ms of ``raw``), the two run in turn (:func:`suite.core.trace.bench.interleaved`)."""
+    from suite.core.trace.bench import interleaved
+
+    t = interleaved([("stage", stage), ("raw", raw)], repeats)
+    return 1e3 * t["stage"], 1e3 * t["raw"]
 
 
 def load_scene(name: str):

@@ -41,7 +41,7 @@ import numpy as np
 
 from methods.quake_drt.rng import DIM_JITTER_X, DIM_JITTER_Y, DIM_LENS_U, DIM_LENS_V, uniform_np
 from suite.core import gbuffer as _gbuffer
-from suite.core.gbuffer import surface_attributes, texture_table, trace_primary
+from suite.core.gbuffer import material_tables, surface_attributes, texture_table, trace_primary
 from suite.core.trace.base import Hits
 
 OVERLAY_NONE, OVERLAY_ADD, OVERLAY_ALPHA = 0, 1, 2
@@ -292,8 +292,7 @@ def _texture_table(scene):
         tex = np.asarray(tex)
         if tex.ndim != 3 or tex.shape[2] not in (1, 3) or tex.dtype not in (np.float32, np.uint8, np.uint16):
             return None
-    return (np.stack([m.albedo for m in mats]).astype(np.float32),
-            np.stack([m.emission for m in mats]).astype(np.float32), *texture_table(scene))
+    return (*material_tables(scene), *texture_table(scene))
 
 
 def _surface_pass(positions, normals, faces, face_material, albedo_table, emission_table, tex_slot, tex_shape,

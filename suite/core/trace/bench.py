@@ -57,7 +57,7 @@ def _median_time(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def _interleaved(pairs, repeats: int) -> dict:
+def interleaved(pairs, repeats: int) -> dict:
     """Median seconds of each named function, the functions run in turn ``repeats`` times (after one warm-up)."""
     for _, fn in pairs:
         fn()
@@ -96,7 +96,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     if dev is None:
         out["interface"] = "numpy"
         for query, (suite_fn, raw_fn) in numpy_fns.items():
-            t = _interleaved([("suite", suite_fn), ("raw", raw_fn)], repeats)
+            t = interleaved([("suite", suite_fn), ("raw", raw_fn)], repeats)
             q = queries(suite_fn)
             out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"],
                           "ratio": t["raw"] / t["suite"], "queries_per_ray": q,
@@ -113,7 +113,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     device_fns = {"occluded": (lambda: dev.occluded(o_dev, d_dev, 0.0, tmax_dev), lambda: dev.raw_occluded(ray)),
                   "intersect": (lambda: dev.intersect(o_dev, d_dev, 0.0, tmax_dev), lambda: dev.raw_intersect(ray))}
     for query in ("occluded", "intersect"):
-        t = _interleaved([("suite", device_fns[query][0]), ("raw", device_fns[query][1]),
+        t = interleaved([("suite", device_fns[query][0]), ("raw", device_fns[query][1]),
                           ("numpy_suite", numpy_fns[query][0]), ("numpy_raw", numpy_fns[query][1])], repeats)
         q = queries(device_fns[query][0])
         out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"], "ratio": t["raw"] / t["suite"],
@@ -176,7 +176,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         stage("trace", ms, pixels)
         g, rays = counted(lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s))
         ro, rd, _, rlen = as_rays(o32, d32, 0.0, np.inf, tracer.shift)
-        t = _interleaved([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
+        t = interleaved([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
                           ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
         gb = stage("gbuffer", 1e3 * t["gbuffer"], rays)
         stage("raw_intersect", 1e3 * t["raw"], pixels)
@@ -214,7 +214,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
     ray = dev.raw_ray(dev.Point3f(*[dr.full(dev.Float, float(x), pixels) for x in cam]), dev.Vector3f(d64),
                       dr.full(dev.Float, 1e37, pixels))
     g = dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)
-    t = _interleaved([("gbuffer", lambda: dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
+    t = interleaved([("gbuffer", lambda: dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
                       ("raw", lambda: dev.raw_intersect(ray))], repeats)
     gb = stage("gbuffer", 1e3 * t["gbuffer"], g.rays, note="fused: one kernel")
     stage("raw_intersect", 1e3 * t["raw"], pixels, note="the same camera rays, held in device memory")
@@ -222,7 +222,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
     vis, vis_rays = counted(lambda: dsh.point_light_visibility(g, lights, tracer))  # shadow rays + alpha walk
     if lights:
         rays_dev = dsh.shadow_rays(g, lights, tracer)
-        t = _interleaved([("pass", lambda: dsh.point_light_visibility(g, lights, tracer)),
+        t = interleaved([("pass", lambda: dsh.point_light_visibility(g, lights, tracer)),
                           ("raw", lambda: dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]))],
                          repeats)
         stage("visibility", 1e3 * t["pass"], vis_rays)

@@ -113,15 +113,19 @@ def test04_textures_the_pass_does_not_take_go_to_the_reference():
     assert all(_same(getattr(s, f), getattr(ref, f)) for f in SURFACE_FIELDS)
 
 
+def _jittered_samples(scene, tracer, w, h, seed):
+    """(pixel seeds, surface_from_hits of the jittered camera rays traced whole) at time 0."""
+    seeds = pixel_seeds(seed, w, h).reshape(-1)
+    o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
+    hits = tracer.intersect(o, d.astype(np.float32))
+    return seeds, primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+
+
 def _direct_setup(k_lights=40, soft=True):
     scene, vis = testscenes.two_rooms(door_open=False, lights_in_b=2, extra_lights=k_lights)
     scene = testscenes.with_visibility(scene, vis)
     tracer = make("embree", scene)
-    w, h = 32, 24
-    seeds = pixel_seeds(11, w, h).reshape(-1)
-    o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
-    hits = tracer.intersect(o, d.astype(np.float32))
-    s = primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+    seeds, s = _jittered_samples(scene, tracer, 32, 24, 11)
     idx = np.nonzero(s.valid)[0]
     lambert = np.ones(len(idx), bool)
     lambert[::7] = False  # glossy points: no cos_x test
@@ -221,10 +225,7 @@ def test08_pipelined_shading_samples_equal_the_whole_image_passes(monkeypatch):
     for scene in _scenes():
         tracer = make("embree", scene)
         w, h = 64, 40
-        seeds = pixel_seeds(9, w, h).reshape(-1)
-        o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
-        hits = tracer.intersect(o, d.astype(np.float32))
-        whole = primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+        seeds, whole = _jittered_samples(scene, tracer, w, h, 9)
         assert len(gbuffer.row_chunks(h, w)) > 1
         _, piped = primary.primary_stage(scene, tracer, 0.0, None, (w, h), seeds, jitter=True)
         for field in SURFACE_FIELDS:
