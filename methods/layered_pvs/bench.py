@@ -36,8 +36,9 @@ SERVER_STAGES = ("pvs", "layers", "path_trace")
 
 class RecordingTracer:
     """Wraps a tracer: forwards every query and keeps its rays in the tracing frame, ready to replay on the raw
-    backend (``("i" | "o", origins (N, 3), directions, lengths)``). Exposes ``occluded_local`` exactly when the
-    wrapped tracer does, so the method takes the same code path as with the plain tracer."""
+    backend (``("i" | "o", origins (N, 3), directions, lengths)``). Exposes ``occluded_local`` and
+    ``intersect_local`` exactly when the wrapped tracer does, so the method takes the same code path as with the
+    plain tracer."""
 
     def __init__(self, tracer):
         self.t = tracer
@@ -46,6 +47,8 @@ class RecordingTracer:
         self.log = []
         if hasattr(tracer, "occluded_local"):
             self.occluded_local = self._occluded_local
+        if hasattr(tracer, "intersect_local"):
+            self.intersect_local = self._intersect_local
 
     def _keep(self, kind, o, d, tmin, tmax):
         from suite.core.trace.base import as_rays
@@ -65,6 +68,11 @@ class RecordingTracer:
         self.log.append(("o", np.ascontiguousarray(o.T if self.soa_origins else o, np.float32), np.array(d),
                          np.array(length)))
         return self.t.occluded_local(o, d, length)
+
+    def _intersect_local(self, o, d, length):
+        self.log.append(("i", np.ascontiguousarray(o.T if self.soa_origins else o, np.float32), np.array(d),
+                         np.array(length)))
+        return self.t.intersect_local(o, d, length)
 
 
 class LocalContext:

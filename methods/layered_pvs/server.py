@@ -92,7 +92,7 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
     not traced again. The views run through the host pipeline (:func:`suite.core.gbuffer.pipelined`): a worker
     makes the next view's camera rays (compiled, the GIL released) and marks the previous view's ids while the
     backend traces the current one's."""
-    from suite.core.gbuffer import pipelined
+    from suite.core.gbuffer import local_rays, pipelined, trace_local
 
     marks = np.zeros(tracer.scene.num_faces, bool)
     distinct = {}
@@ -106,10 +106,11 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
         def make():
             # float32 rays straight from the compiled camera pass (its float64 directions rounded once, as a
             # float64 pass and a cast would give them, without the two extra copies)
-            rays[i] = camera_rays(pose, fov_deg, width, height, dtype=np.float32)
+            o, d = camera_rays(pose, fov_deg, width, height, dtype=np.float32)
+            rays[i] = (local_rays(tracer, o, d), o, d)
 
         def trace():
-            hits[i] = tracer.intersect(*rays.pop(i)).prim
+            hits[i] = trace_local(tracer, *rays.pop(i)).prim
 
         def finish():
             prim = hits.pop(i)
@@ -536,8 +537,12 @@ class _Serial:
         self.tracer, self.lock = tracer, lock
         if hasattr(tracer, "occluded_local"):
             self.occluded_local = self._occluded_local
+        if hasattr(tracer, "intersect_local"):
+            self.intersect_local = self._intersect_local
 
     def __getattr__(self, name):
+        if name in ("occluded_local", "intersect_local"):  # the locked ones above, or none
+            raise AttributeError(name)
         return getattr(self.tracer, name)
 
     def intersect(self, *args, **kwargs):
@@ -551,6 +556,10 @@ class _Serial:
     def _occluded_local(self, *args, **kwargs):
         with self.lock:
             return self.tracer.occluded_local(*args, **kwargs)
+
+    def _intersect_local(self, *args, **kwargs):
+        with self.lock:
+            return self.tracer.intersect_local(*args, **kwargs)
 
 
 def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, lights,

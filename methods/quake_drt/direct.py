@@ -82,6 +82,16 @@ def uniform_nb(seed, dim):
     return np.float64(h >> np.uint64(8)) * _INV_2_24
 
 
+@numba.njit(cache=True, nogil=True)
+def jitter_nb(seeds, first, end, dim_x, dim_y, jx, jy):
+    """The anti-aliasing jitter of pixels ``first:end`` (``uniform - 0.5`` in x and y, the primary stage's
+    :func:`.primary.camera_rays`), in one pass (the hash stays in this file: numba's cache watches the kernel's own
+    file only)."""
+    for k in range(first, end):
+        jx[k] = uniform_nb(seeds[k], dim_x) - 0.5
+        jy[k] = uniform_nb(seeds[k], dim_y) - 0.5
+
+
 
 @dataclass
 class ShadingPoints:

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from methods.quake_drt.direct import jitter_nb
 from methods.quake_drt.rng import DIM_JITTER_X, DIM_JITTER_Y, DIM_LENS_U, DIM_LENS_V, uniform_np
 from suite.core import gbuffer as _gbuffer
 from suite.core.gbuffer import material_tables, surface_attributes, texture_table, trace_primary
@@ -481,23 +482,30 @@ def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np
     pose = scene.camera.pose_at(t_s)
     basis = [np.asarray(b, np.float64) for b in pose.basis()]
     seeds = np.asarray(seeds, np.uint32).reshape(-1)
-    jx = np.ascontiguousarray(uniform_np(seeds, DIM_JITTER_X) - 0.5, np.float64)
-    jy = np.ascontiguousarray(uniform_np(seeds, DIM_JITTER_Y) - 0.5, np.float64)
+    jx, jy = np.empty(len(seeds)), np.empty(len(seeds))  # the jitter, made per chunk with its rays
     tan_x = float(np.tan(np.radians(scene.camera.fov_deg) / 2.0))
     n = width * height
-    o = np.broadcast_to(np.asarray(pose.position, np.float64), (n, 3)).copy()
+    position = np.asarray(pose.position, np.float64)
+    o = np.empty((n, 3))  # the camera position, written per chunk with its rays
     d, d32 = np.empty((n, 3)), np.empty((n, 3), np.float32)
     prim, u, v, t = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
     s = _new_surface(o, d)
     camera = _kernels()[0]
 
+    local = {}  # row chunk -> its rays in the tracing frame, made beside the previous chunk's query
+
     def make(r0, r1):
+        a, b = r0 * width, r1 * width
+        for c in range(3):  # column by column: numpy's broadcast of a 3-vector over rows is several times slower
+            o[a:b, c] = position[c]
+        jitter_nb(seeds, a, b, DIM_JITTER_X, DIM_JITTER_Y, jx, jy)
         camera(*basis, tan_x, width / height, int(width), int(height), r0, r1, jx, jy, d)
-        d32[r0 * width:r1 * width] = d[r0 * width:r1 * width]
+        d32[a:b] = d[a:b]
+        local[r0] = _gbuffer.local_rays(tracer, o[a:b], d32[a:b])
 
     def trace(r0, r1):
         a, b = r0 * width, r1 * width
-        h = tracer.intersect(o[a:b], d32[a:b])
+        h = _gbuffer.trace_local(tracer, local.pop(r0), o[a:b], d32[a:b])
         prim[a:b], u[a:b], v[a:b], t[a:b] = h.prim, h.u, h.v, h.t
 
     def finish(r0, r1):

@@ -160,8 +160,69 @@ def test09_the_gbuffer_made_in_pipelined_row_chunks_is_the_one_made_whole(name, 
     monkeypatch.setattr(gbuffer, "PIPELINE_MIN_PIXELS", 500)
     chunks = gbuffer.row_chunks(61, 96)
     assert len(chunks) == gbuffer.PIPELINE_CHUNKS and chunks[0][0] == 0 and chunks[-1][1] == 61
+    heights = [b - a for a, b in chunks]  # a short first and last chunk: a short pipeline fill and drain
+    assert heights[0] < max(heights) and heights[-1] < heights[0]
     assert all(a[1] == b[0] for a, b in zip(chunks[:-1], chunks[1:]))
     piped = render_gbuffer(scene, tracer, 0.5, size, 0.45)
     for field in ("position", "normal", "geo_normal", "albedo", "emission", "depth", "prim", "valid", "motion",
                   "view_dir", "material", "kind"):
         assert np.array_equal(getattr(whole, field), getattr(piped, field)), field
+
+
+def _recording_steps(log, count, fail=None):
+    """Pipeline steps that log (call, step, thread) and check the order the pipeline promises."""
+    import threading
+
+    def call(kind, k):
+        def run():
+            log.append((kind, k, threading.get_ident()))
+            if (kind, k) == fail:
+                raise ValueError(f"{kind} {k} failed")
+        return run
+
+    return [(call("make", k), call("trace", k), call("finish", k)) for k in range(count)]
+
+
+def test10_the_pipeline_traces_in_order_on_the_callers_thread_after_each_make_and_before_each_finish():
+    import threading
+
+    from suite.core.gbuffer import pipelined
+
+    log = []
+    pipelined(_recording_steps(log, 9))
+    traces = [(k, t) for kind, k, t in log if kind == "trace"]
+    assert [k for k, _ in traces] == list(range(9))
+    assert {t for _, t in traces} == {threading.get_ident()}
+    at = {(kind, k): i for i, (kind, k, _) in enumerate(log)}
+    assert len(at) == 27  # every call once
+    for k in range(9):
+        assert at[("make", k)] < at[("trace", k)] < at[("finish", k)]
+
+
+def test11_an_error_in_a_step_reaches_the_caller_and_the_pipeline_can_run_again():
+    from suite.core.gbuffer import pipelined
+
+    for fail in (("make", 4), ("trace", 2), ("finish", 6), ("finish", 0)):
+        log = []
+        with pytest.raises(ValueError, match=f"{fail[0]} {fail[1]} failed"):
+            pipelined(_recording_steps(log, 8, fail))
+        assert not any(kind == "trace" and k > fail[1] for kind, k, _ in log if fail[0] != "finish")
+    log = []
+    pipelined(_recording_steps(log, 5))
+    assert sorted(k for kind, k, _ in log if kind == "finish") == list(range(5))
+
+
+def test12_a_pipeline_inside_a_step_of_another_runs_on_a_worker_of_its_own():
+    from suite.core.gbuffer import pipelined
+
+    inner = []
+    outer = _recording_steps([], 4)
+    make, trace, finish = outer[1]
+
+    def nested_finish():
+        finish()
+        pipelined(_recording_steps(inner, 5))
+
+    outer[1] = (make, trace, nested_finish)
+    pipelined(outer)
+    assert sorted(k for kind, k, _ in inner if kind == "finish") == list(range(5))

@@ -192,3 +192,25 @@ def test10_ray_arguments_take_the_bits_of_the_numpy_column_passes():
             if np.ndim(tmin) or tmin > 0:
                 expected += d * np.broadcast_to(np.float32(tmin), (n,))[:, None]
             assert np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("backend", backend_params("embree", "mitsuba-llvm", "mitsuba-cuda"))
+@pytest.mark.parametrize("scene_name", ["cornell", "gallery"])
+def test11_rays_made_in_the_tracing_frame_ahead_get_the_hits_of_intersect(backend, scene_name):
+    """``intersect_local`` of the rays ``local_rays`` made (what a pipeline's worker makes while the backend traces
+    other rays) answers as ``intersect`` does, alpha-tested walks (gallery) included, and counts the same rays."""
+    from suite.core.gbuffer import local_rays, trace_local
+
+    scene = load(scene_name)
+    tracer = make(backend, scene)
+    o, d = random_rays(scene, 3000, 11)
+    whole = tracer.intersect(o, d)
+    counted = tracer.counters["rays_intersect"]
+    tracer.reset_counters()
+    query = local_rays(tracer, o, d)
+    assert query is not None
+    ahead = trace_local(tracer, query, o, d)
+    assert tracer.counters["rays_intersect"] == counted
+    for field in ("t", "prim", "u", "v"):
+        assert np.array_equal(getattr(whole, field), getattr(ahead, field)), field
+    assert (whole.prim >= 0).mean() > 0.5

@@ -15,7 +15,9 @@ box centre in float64 before they become float32. A scene far from the origin th
 scene at the origin inside the backend (hit distances, watertight edge tests); only its input coordinates
 carry their own rounding.
 
-A tracer reuses its ray buffers from query to query, so one tracer serves one thread at a time.
+A tracer reuses its ray buffers from query to query, so one tracer serves one thread at a time. Rays already in
+the tracing frame (made by :func:`as_rays`, for instance on another thread while the backend traces other rays)
+go to ``intersect_local`` and ``occluded_local``, which only query.
 
 Alpha-tested shadow rays: a backend that can build sub-scenes (``_subscene``) answers ``occluded`` from two of them
 (:meth:`Tracer._occluded_split`): the any-hit query runs against the opaque faces, and only the open rays whose
@@ -168,8 +170,21 @@ class Tracer:
     # subclasses implement _intersect(o, d, length) -> (t, prim, u, v) and _occluded(o, d, length) -> bool
     def intersect(self, origins, dirs, tmin=0.0, tmax=np.inf) -> Hits:
         o, d, tmin_a, length = as_rays(origins, dirs, tmin, tmax, self.shift, self.soa_origins, self._scratch)
-        self.counters["rays_intersect"] += len(d)
-        if len(d) == 0:
+        hits = self.intersect_local(o, d, length)
+        if np.ndim(tmin) != 0 or tmin > 0:
+            hits.t += tmin_a  # inf stays inf
+        return hits
+
+    def intersect_local(self, o, d, length) -> Hits:
+        """``intersect`` for rays already in the tracing frame (the arguments of :meth:`occluded_local`, made by
+        :func:`as_rays` with this tracer's ``shift`` and ``soa_origins``); ``t`` is measured from ``o``. The
+        backend may overwrite ``length``.
+
+        For pipelines that make a query's rays on another thread while the backend traces the previous query
+        (:func:`suite.core.gbuffer.pipelined`): only the query itself runs on the tracing thread."""
+        n = len(d)
+        self.counters["rays_intersect"] += n
+        if n == 0:
             z = np.zeros(0, np.float32)
             return Hits(z, np.zeros(0, np.int32), z, z)
         if self._alpha is None:
@@ -178,8 +193,6 @@ class Tracer:
             # embreex writes hit distances into the length buffer it is given: keep the lengths for re-tracing.
             t, prim, u, v = self._closest(o, d, length.copy())
             t, prim, u, v = self._skip_transparent(o, d, length, t, prim, u, v)
-        if np.ndim(tmin) != 0 or tmin > 0:
-            t += tmin_a  # inf stays inf
         return Hits(t, prim, u, v)
 
     def _closest(self, o, d, length):
