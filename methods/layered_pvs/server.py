@@ -89,10 +89,10 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
     scene), marked and compacted (the prefix sum of the thesis = ``np.nonzero`` of the marks). Sorted ids.
 
     A view equal to an earlier one (the extrapolated views of a camera with no known motion) adds nothing and is
-    not traced again. The views run through the host pipeline (:func:`suite.core.gbuffer.pipelined`): a worker
+    not traced again. The views run through the host pipeline (:func:`suite.core.pipeline.pipelined`): a worker
     makes the next view's camera rays (compiled, the GIL released) and marks the previous view's ids while the
     backend traces the current one's."""
-    from suite.core.gbuffer import local_rays, pipelined, trace_local
+    from suite.core.pipeline import local_rays, pipelined, trace_local
 
     marks = np.zeros(tracer.scene.num_faces, bool)
     distinct = {}

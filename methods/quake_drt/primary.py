@@ -41,7 +41,7 @@ import numpy as np
 
 from methods.quake_drt.direct import jitter_nb
 from methods.quake_drt.rng import DIM_JITTER_X, DIM_JITTER_Y, DIM_LENS_U, DIM_LENS_V, uniform_np
-from suite.core import gbuffer as _gbuffer
+from suite.core import gbuffer as _gbuffer, pipeline
 from suite.core.gbuffer import material_tables, surface_attributes, texture_table, trace_primary
 from suite.core.trace.base import Hits
 
@@ -438,7 +438,7 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
         tracer.update(t_s)
         shading_steps, s = _shading_steps(scene, tracer, t_s, width, height, seeds, textures)
         gbuffer_steps, gbuffer = _gbuffer.primary_steps(scene, tracer, t_s, width, height, prev_t_s)
-        _gbuffer.pipelined(shading_steps + gbuffer_steps)
+        pipeline.pipelined(shading_steps + gbuffer_steps)
         return gbuffer()[0], s
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending, layers = None, []
@@ -477,7 +477,7 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
 
 def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np.ndarray, textures):
     """``(steps, samples)``: :func:`surface_from_hits` of the jittered pinhole rays of :func:`camera_rays` as
-    pipeline steps over row chunks (:func:`suite.core.gbuffer.pipelined`; the same rays, queries and bits as the
+    pipeline steps over row chunks (:func:`suite.core.pipeline.pipelined`; the same rays, queries and bits as the
     whole-image passes), and the Surface they fill."""
     pose = scene.camera.pose_at(t_s)
     basis = [np.asarray(b, np.float64) for b in pose.basis()]
@@ -501,11 +501,11 @@ def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np
         jitter_nb(seeds, a, b, DIM_JITTER_X, DIM_JITTER_Y, jx, jy)
         camera(*basis, tan_x, width / height, int(width), int(height), r0, r1, jx, jy, d)
         d32[a:b] = d[a:b]
-        local[r0] = _gbuffer.local_rays(tracer, o[a:b], d32[a:b])
+        local[r0] = pipeline.local_rays(tracer, o[a:b], d32[a:b])
 
     def trace(r0, r1):
         a, b = r0 * width, r1 * width
-        h = _gbuffer.trace_local(tracer, local.pop(r0), o[a:b], d32[a:b])
+        h = pipeline.trace_local(tracer, local.pop(r0), o[a:b], d32[a:b])
         prim[a:b], u[a:b], v[a:b], t[a:b] = h.prim, h.u, h.v, h.t
 
     def finish(r0, r1):

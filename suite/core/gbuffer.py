@@ -11,14 +11,13 @@ what lies behind them. Each pixel carries its material index and shading kind (`
 """
 from __future__ import annotations
 
-import os
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from suite.errors import UserError
-from suite.core.trace.base import Hits, as_rays
+from suite.core.pipeline import local_rays, pipelined, trace_local
+from suite.core.trace.base import Hits
 
 
 @dataclass
@@ -594,140 +593,6 @@ def row_steps(height: int, width: int, make, trace, finish) -> list:
     from functools import partial
 
     return [(partial(make, a, b), partial(trace, a, b), partial(finish, a, b)) for a, b in row_chunks(height, width)]
-
-
-def local_rays(tracer, origins, dirs):
-    """The closest-hit query of rays (no tmin, no far limit) in ``tracer``'s frame and layout, the arguments of its
-    ``intersect_local``, in fresh arrays (a pipeline's worker makes them while the backend traces); None for a
-    tracer without ``intersect_local`` (:func:`trace_local` then calls ``intersect``)."""
-    if not hasattr(tracer, "intersect_local"):
-        return None
-    o, d, _, length = as_rays(origins, dirs, 0.0, np.inf, tracer.shift, bool(getattr(tracer, "soa_origins", False)))
-    return o, d, length
-
-
-def trace_local(tracer, query, origins, dirs) -> Hits:
-    """Closest hits of the rays ``(origins, dirs)``: ``tracer.intersect_local(*query)`` with the query
-    :func:`local_rays` made of them (the same rays, queries and hits as ``tracer.intersect(origins, dirs)``)."""
-    return tracer.intersect(origins, dirs) if query is None else tracer.intersect_local(*query)
-
-
-# The worker thread of :func:`pipelined`, kept for the process (made on first use; a forked child makes its own).
-_PIPELINE_WORKER = {"lock": threading.Lock(), "pool": None, "pid": None}
-
-# How many steps' rays the pipeline makes ahead of the step being traced (:func:`pipelined`): enough that the
-# backend never waits for rays, few enough that a pipeline of whole views keeps little memory.
-PIPELINE_LOOKAHEAD = 2
-
-
-def pipelined(steps) -> None:
-    """Runs ``[(make, trace, finish)]`` steps pipelined on two threads. The caller's thread traces the steps one
-    after the other (the backend is queried from it only, in step order, so its ray stream is the one a pass
-    over the whole image would send). One worker makes the rays of the next steps (up to
-    :data:`PIPELINE_LOOKAHEAD` ahead, first, so that the backend does not wait) and finishes the traced ones in
-    between; once everything is traced the caller's thread finishes steps too. Makes and finishes are compiled
-    passes that release the GIL; they must not query the backend, and steps write disjoint outputs (a finish may
-    run beside another step's make or finish). Each step's calls are the ones a pass over its whole image would
-    make for its rows, so the results do not depend on the chunking, on which thread ran a call, nor on the
-    images whose steps share the pipeline."""
-    if not steps:
-        return
-    if len(steps) == 1:
-        for call in steps[0]:
-            call()
-        return
-    n = len(steps)
-    cond = threading.Condition()
-    # Progress, guarded by cond: makes claimed (in order), makes done, steps traced, finishes claimed (in order).
-    state = {"make": 0, "made": [False] * n, "traced": 0, "finish": 0, "error": None}
-
-    def run(kind, k):
-        try:
-            steps[k][kind]()
-        except BaseException as exc:  # handed to the caller's thread, which raises it
-            with cond:
-                state["error"] = state["error"] or exc
-                cond.notify_all()
-            return False
-        if kind == 0:
-            with cond:
-                state["made"][k] = True
-                cond.notify_all()
-        return True
-
-    def claim_finish():
-        """The next finish that may run (its step traced), claimed; None if there is none now."""
-        k = state["finish"]
-        if k < state["traced"]:
-            state["finish"] = k + 1
-            return k
-        return None
-
-    def worker():
-        while True:
-            with cond:
-                while True:
-                    if state["error"] is not None or state["finish"] >= n:
-                        return
-                    k = state["make"]
-                    if k < n and k <= state["traced"] + PIPELINE_LOOKAHEAD:
-                        state["make"], kind = k + 1, 0
-                        break
-                    k = claim_finish()
-                    if k is not None:
-                        kind = 2
-                        break
-                    cond.wait()
-            if not run(kind, k):
-                return
-
-    shared = _PIPELINE_WORKER["lock"].acquire(blocking=False)
-    if shared:  # the process's pipeline worker (no thread start per call)
-        pool = _PIPELINE_WORKER["pool"]
-        if pool is None or _PIPELINE_WORKER["pid"] != os.getpid():  # none yet, or one of the parent process
-            from concurrent.futures import ThreadPoolExecutor
-
-            pool = _PIPELINE_WORKER["pool"] = ThreadPoolExecutor(1, thread_name_prefix="splitbench-pipeline")
-            _PIPELINE_WORKER["pid"] = os.getpid()
-        thread = pool.submit(worker)
-    else:  # it serves another pipeline (another thread's, or the one whose step runs this): a thread of our own
-        thread = threading.Thread(target=worker, name="splitbench-pipeline", daemon=True)
-        thread.start()
-    try:
-        for k in range(n):
-            with cond:
-                mine = state["make"] == k  # not claimed by the worker yet: make it here rather than wait
-                if mine:
-                    state["make"] = k + 1
-            if mine and not run(0, k):
-                break
-            with cond:
-                while not state["made"][k] and state["error"] is None:
-                    cond.wait()
-                if state["error"] is not None:
-                    break
-            steps[k][1]()
-            with cond:
-                state["traced"] = k + 1
-                cond.notify_all()
-        while True:  # everything traced: finish beside the worker
-            with cond:
-                k = None if state["error"] is not None else claim_finish()
-            if k is None or not run(2, k):
-                break
-    except BaseException as exc:
-        with cond:
-            state["error"] = state["error"] or exc
-            cond.notify_all()
-    if shared:
-        try:
-            thread.result()
-        finally:
-            _PIPELINE_WORKER["lock"].release()
-    else:
-        thread.join()
-    if state["error"] is not None:
-        raise state["error"]
 
 
 _PACKED_TEXTURES: dict = {}  # ids of a scene's albedo textures -> (the textures, their packed table)

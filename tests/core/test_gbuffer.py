@@ -186,7 +186,7 @@ def _recording_steps(log, count, fail=None):
 def test10_the_pipeline_traces_in_order_on_the_callers_thread_after_each_make_and_before_each_finish():
     import threading
 
-    from suite.core.gbuffer import pipelined
+    from suite.core.pipeline import pipelined
 
     log = []
     pipelined(_recording_steps(log, 9))
@@ -200,7 +200,7 @@ def test10_the_pipeline_traces_in_order_on_the_callers_thread_after_each_make_an
 
 
 def test11_an_error_in_a_step_reaches_the_caller_and_the_pipeline_can_run_again():
-    from suite.core.gbuffer import pipelined
+    from suite.core.pipeline import pipelined
 
     for fail in (("make", 4), ("trace", 2), ("finish", 6), ("finish", 0)):
         log = []
@@ -213,7 +213,7 @@ def test11_an_error_in_a_step_reaches_the_caller_and_the_pipeline_can_run_again(
 
 
 def test12_a_pipeline_inside_a_step_of_another_runs_on_a_worker_of_its_own():
-    from suite.core.gbuffer import pipelined
+    from suite.core.pipeline import pipelined
 
     inner = []
     outer = _recording_steps([], 4)

@@ -199,7 +199,7 @@ def test10_ray_arguments_take_the_bits_of_the_numpy_column_passes():
 def test11_rays_made_in_the_tracing_frame_ahead_get_the_hits_of_intersect(backend, scene_name):
     """``intersect_local`` of the rays ``local_rays`` made (what a pipeline's worker makes while the backend traces
     other rays) answers as ``intersect`` does, alpha-tested walks (gallery) included, and counts the same rays."""
-    from suite.core.gbuffer import local_rays, trace_local
+    from suite.core.pipeline import local_rays, trace_local
 
     scene = load(scene_name)
     tracer = make(backend, scene)

@@ -181,7 +181,7 @@ class Tracer:
         backend may overwrite ``length``.
 
         For pipelines that make a query's rays on another thread while the backend traces the previous query
-        (:func:`suite.core.gbuffer.pipelined`): only the query itself runs on the tracing thread."""
+        (:func:`suite.core.pipeline.pipelined`): only the query itself runs on the tracing thread."""
         n = len(d)
         self.counters["rays_intersect"] += n
         if n == 0:
