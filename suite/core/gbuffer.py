@@ -575,11 +575,13 @@ def row_chunks(height: int, width: int) -> list:
     """[(first row, end row)]: an image's rows in up to :data:`PIPELINE_CHUNKS` chunks of about
     :data:`PIPELINE_MIN_PIXELS` pixels or more (one chunk for a small image)."""
     count = int(max(1, min(PIPELINE_CHUNKS, (height * width) // PIPELINE_MIN_PIXELS, height)))
-    # The first chunk half as tall as the others and the last a quarter: the backend starts on the first chunk's
-    # rays sooner, and less work is left once the last chunk is traced (the pipeline's fill and drain).
+    # The first chunk half as tall as the others, the last two a half and a quarter: the backend starts on the first
+    # chunk's rays sooner, and less work is left once the last chunk is traced (the pipeline's fill and drain).
     weight = [1.0] * count
     if count >= 3:
         weight[0], weight[-1] = 0.5, 0.25
+        if count >= 5:
+            weight[-2] = 0.5
     bounds, done = [0], 0.0
     for w in weight:  # plain floats: this runs several times per frame
         done += w
