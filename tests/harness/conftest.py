@@ -51,7 +51,7 @@ def fake_reference_set(scene, t_s, resolution, spp, transport, max_depth, exposu
 
 
 def fake_compare(ref, test, exposure, ref_stderr=None):
-    mse = float(np.mean((ref - test) ** 2))
+    mse = float(np.mean((np.asarray(ref, np.float64) - test) ** 2))  # float64: a decoded corrupt image may hold huge values
     ssim = 1.0 / (1.0 + mse)
     return {"ssim": ssim, "dssim": (1 - ssim) / 2, "psnr_db": -10 * np.log10(max(mse, 1e-12)),
             "nrmse": float(np.sqrt(mse)), "flip": float(np.mean(np.abs(ref - test))), "rel_mse": mse}
