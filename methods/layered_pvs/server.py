@@ -566,6 +566,8 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
                 sample, first: int, end: int, rng) -> None:
     """The bounces of the wavefront rows ``first:end`` (row = sample * n + fragment), their contributions added to
     ``sample`` (rows of other parts are not touched)."""
+    from suite.core.pipeline import local_rays, trace_local
+
     n = len(frag.position)
     positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
     shift = getattr(tracer, "shift", None)
@@ -600,7 +602,8 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
                             rows, thr, o64, d64, o32, d32)
         if m == 0:
             break
-        hits = tracer.intersect(o32[:m], d32[:m])
+        # The rays are put in the tracing frame here, outside the lock a shared tracer is queried under.
+        hits = trace_local(tracer, local_rays(tracer, o32[:m], d32[:m]), o32[:m], d32[:m])
         m = kern["_compact_hits"](hits.prim, hits.u, hits.v, rows[:m], o64[:m], d64[:m], thr[:m], prim, u, v, rows,
                                   o64, d64, thr)
         if m == 0:
@@ -615,7 +618,9 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
                                   *offset, SHADOW_TMAX_SCALE, ng, ns, thr, sel_rows, sel_o32, sel_d32, sel_tmax32,
                                   sel_contrib)
         if k:
-            occ = tracer.occluded(sel_o32[:k], sel_d32[:k], 0.0, sel_tmax32[:k])
+            query = local_rays(tracer, sel_o32[:k], sel_d32[:k], sel_tmax32[:k])
+            occ = tracer.occluded(sel_o32[:k], sel_d32[:k], 0.0, sel_tmax32[:k]) if query is None \
+                else tracer.occluded_local(*query)
             kern["_add_unoccluded"](sample, sel_rows[:k], sel_contrib[:k], np.asarray(occ, np.bool_))
 
 

@@ -27,13 +27,14 @@ import numpy as np
 from suite.core.trace.base import Hits, as_rays
 
 
-def local_rays(tracer, origins, dirs):
-    """The closest-hit query of rays (no tmin, no far limit) in ``tracer``'s frame and layout, the arguments of its
-    ``intersect_local``, in fresh arrays (a pipeline's worker makes them while the backend traces); None for a
-    tracer without ``intersect_local`` (:func:`trace_local` then calls ``intersect``)."""
-    if not hasattr(tracer, "intersect_local"):
+def local_rays(tracer, origins, dirs, tmax=np.inf):
+    """Rays from their origins (no tmin) to ``tmax`` in ``tracer``'s frame and layout, the arguments of its
+    ``intersect_local`` and ``occluded_local``, in fresh arrays (made on another thread than the one that queries,
+    or outside the lock a shared tracer is queried under); None for a tracer without both (the caller then uses
+    ``intersect`` / ``occluded``: :func:`trace_local`)."""
+    if not (hasattr(tracer, "intersect_local") and hasattr(tracer, "occluded_local")):
         return None
-    o, d, _, length = as_rays(origins, dirs, 0.0, np.inf, tracer.shift, bool(getattr(tracer, "soa_origins", False)))
+    o, d, _, length = as_rays(origins, dirs, 0.0, tmax, tracer.shift, bool(getattr(tracer, "soa_origins", False)))
     return o, d, length
 
 
