@@ -6,8 +6,9 @@ frame, difference). Stores ``<results>/bench/layered_pvs.json`` and PNGs in ``<r
 is pure tracing; below it, the share of shading, sampling and bookkeeping). The rays are recorded in one update
 (:class:`RecordingTracer`, outside every timed run); the stages are then timed in ``--repeats`` further updates with
 the plain tracer (the same rays: the update is deterministic), interleaved with the replay of each stage's rays on
-the backend's raw entry points (``raw_intersect`` / ``raw_occluded`` on rays already in its frame and layout; a
-backend without them replays through the suite's queries, and the row says so); medians of the repeats.
+the backend's raw entry points (``raw_intersect`` / ``raw_occluded`` on rays already in its frame and layout, each
+call timed on fresh copies made just before it, so its rays are in the cache as the stage's are; a backend without
+them replays through the suite's queries, and the row says so); medians of the repeats.
 
 One update is made outside the harness with :class:`LocalContext` (stages timed with ``perf_counter``).
 """
