@@ -134,9 +134,8 @@ class LayeredPVS(Method):
         self.reset()
 
     def prepare(self, scene, tracer):
-        """Offline: which scene vertices share a position (the PVS patch references each position once), and the
-        scene's extent (Algorithm 1's corner offset scales with it)."""
-        return {"canonical": _canonical_vertices(scene.positions), "extent": float(scene.extent)}
+        """Offline: which scene vertices share a position (the PVS patch references each position once)."""
+        return {"canonical": _canonical_vertices(scene.positions)}
 
     def restore(self, prepared) -> None:
         super().restore(prepared)
@@ -146,7 +145,6 @@ class LayeredPVS(Method):
         self._server: dict = {}      # client -> server-side state
         self._canonical = None       # scene vertex -> first vertex with the same position
         self._client: dict = {}      # this client's state (one client per instance)
-        self._extent = None          # (scene, scene.extent) of the last scene served
 
     # ------------------------------------------------------------------------------------------ server
 
@@ -156,15 +154,6 @@ class LayeredPVS(Method):
             st = {"history": [], "pvs": codecs.PVSState(), "encoder": None, "count": 0}
             self._server[c] = st
         return st
-
-    def _scene_extent(self, scene) -> float:
-        """``scene.extent`` (the diagonal of the rest positions' box: fixed per scene), computed once per scene
-        rather than by a pass over every vertex in each update's ``pvs`` stage."""
-        if self._extent is None or self._extent[0] is not scene:
-            pre = (self.prepared or {}).get("extent")
-            # prepared data cached before it held the extent: computed here, once per instance
-            self._extent = (scene, float(pre) if pre is not None else float(scene.extent))
-        return self._extent[1]
 
     def _layer_view(self, ctx, pose) -> server.LayerView:
         w, h = ctx.resolution
@@ -191,7 +180,7 @@ class LayeredPVS(Method):
             if len(hist) >= 2 and hist[-1][0] > hist[-2][0]:
                 speed = float(np.linalg.norm(np.asarray(hist[-1][1].position) - np.asarray(hist[-2][1].position))
                               / (hist[-1][0] - hist[-2][0]))
-            corner = max(speed, float(p["corner_speed"]) * self._scene_extent(scene)) * period_s
+            corner = max(speed, float(p["corner_speed"]) * server.scene_extent(scene)) * period_s
             views = server.predict_views(hist, period_s, corner)
             pvs_ids = server.compute_pvs(tracer, views, view.fov_deg, view.width, view.height)
             sg.pixels = len(views) * view.width * view.height

@@ -389,7 +389,7 @@ def direct_illumination(scene, tracer, frag: Fragments, t_s: float, area_samples
 
     n = len(frag.position)
     lights = scene.lights_at(t_s)
-    min_d = shading.min_light_distance(SimpleNamespace(extent=_scene_extent(scene)))
+    min_d = shading.min_light_distance(SimpleNamespace(extent=scene_extent(scene)))
     position = np.ascontiguousarray(frag.position, np.float64)
     normal = np.ascontiguousarray(frag.normal, np.float64)
     geo_normal = np.ascontiguousarray(frag.geo_normal, np.float64)
@@ -425,9 +425,9 @@ DIRECT_CHUNK_RAYS = 1 << 20    # shadow rays per light and query (the suite's po
 _extent_cache: list = []       # [(scene, extent)] of the last scene
 
 
-def _scene_extent(scene) -> float:
+def scene_extent(scene) -> float:
     """``scene.extent`` (the rest positions' box diagonal, fixed per scene; a pass over every vertex) once per
-    scene."""
+    scene: the light clamp distance and Algorithm 1's corner offset scale with it."""
     if not _extent_cache or _extent_cache[0][0] is not scene:
         _extent_cache[:] = [(scene, float(scene.extent))]
     return _extent_cache[0][1]
@@ -530,36 +530,28 @@ def _path_moments(sample, n: int, spp: int):
 
 class _Serial:
     """A tracer whose queries run one at a time under ``lock``: one stream of rays whatever thread sends them (and
-    the tracer's scratch buffers and counters are touched by one query at a time). Everything else is the
-    tracer's."""
+    the tracer's scratch buffers and counters are touched by one query at a time). It has the tracer's queries
+    (``intersect``, ``occluded`` and the ``*_local`` ones where the tracer has them), each under the lock;
+    everything else is the tracer's."""
+
+    QUERIES = ("intersect", "occluded", "intersect_local", "occluded_local")
 
     def __init__(self, tracer, lock):
         self.tracer, self.lock = tracer, lock
-        if hasattr(tracer, "occluded_local"):
-            self.occluded_local = self._occluded_local
-        if hasattr(tracer, "intersect_local"):
-            self.intersect_local = self._intersect_local
+        for name in self.QUERIES:
+            if hasattr(tracer, name):
+                setattr(self, name, self._locked(getattr(tracer, name)))
+
+    def _locked(self, query):
+        def call(*args, **kwargs):
+            with self.lock:
+                return query(*args, **kwargs)
+        return call
 
     def __getattr__(self, name):
-        if name in ("occluded_local", "intersect_local"):  # the locked ones above, or none
+        if name in self.QUERIES:  # one the tracer lacks: not reached through to it unlocked
             raise AttributeError(name)
         return getattr(self.tracer, name)
-
-    def intersect(self, *args, **kwargs):
-        with self.lock:
-            return self.tracer.intersect(*args, **kwargs)
-
-    def occluded(self, *args, **kwargs):
-        with self.lock:
-            return self.tracer.occluded(*args, **kwargs)
-
-    def _occluded_local(self, *args, **kwargs):
-        with self.lock:
-            return self.tracer.occluded_local(*args, **kwargs)
-
-    def _intersect_local(self, *args, **kwargs):
-        with self.lock:
-            return self.tracer.intersect_local(*args, **kwargs)
 
 
 def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, lights,

@@ -488,11 +488,9 @@ def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np
     position = np.asarray(pose.position, np.float64)
     o = np.empty((n, 3))  # the camera position, written per chunk with its rays
     d, d32 = np.empty((n, 3)), np.empty((n, 3), np.float32)
-    prim, u, v, t = np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32), np.empty(n, np.float32)
     s = _new_surface(o, d)
     camera = _kernels()[0]
-
-    local = {}  # row chunk -> its rays in the tracing frame, made beside the previous chunk's query
+    queue, trace, hits = _gbuffer.row_queries(tracer, o, d32, width)
 
     def make(r0, r1):
         a, b = r0 * width, r1 * width
@@ -501,16 +499,11 @@ def _shading_steps(scene, tracer, t_s: float, width: int, height: int, seeds: np
         jitter_nb(seeds, a, b, DIM_JITTER_X, DIM_JITTER_Y, jx, jy)
         camera(*basis, tan_x, width / height, int(width), int(height), r0, r1, jx, jy, d)
         d32[a:b] = d[a:b]
-        local[r0] = pipeline.local_rays(tracer, o[a:b], d32[a:b])
-
-    def trace(r0, r1):
-        a, b = r0 * width, r1 * width
-        h = pipeline.trace_local(tracer, local.pop(r0), o[a:b], d32[a:b])
-        prim[a:b], u[a:b], v[a:b], t[a:b] = h.prim, h.u, h.v, h.t
+        queue(r0, r1)
 
     def finish(r0, r1):
         a, b = r0 * width, r1 * width
-        _fill_surface(scene, t_s, textures, s, a, b, prim[a:b], u[a:b], v[a:b], t[a:b])
+        _fill_surface(scene, t_s, textures, s, a, b, hits.prim[a:b], hits.u[a:b], hits.v[a:b], hits.t[a:b])
 
     return _gbuffer.row_steps(height, width, make, trace, finish), s
 

@@ -505,7 +505,6 @@ def primary_steps(scene, tracer, t_s: float, width: int, height: int, prev_t_s: 
     # float64 rays give exact surface positions below; the tracers take their float32 rounding.
     o64, d64 = np.empty((n, 3)), np.empty((n, 3))
     o32, dirs = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-    t, prim, u, v = np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32)
     position = np.empty((n, 3), np.float64)
     normal, geo, albedo, emission = (np.empty((n, 3), np.float32) for _ in range(4))
     depth = np.empty(n, np.float32)
@@ -526,7 +525,8 @@ def primary_steps(scene, tracer, t_s: float, width: int, height: int, prev_t_s: 
                  *texture_table(scene), motion_on, prev_xform, np.asarray(prev_pose.position, np.float64),
                  np.stack(prev_pose.basis()).astype(np.float64), tan_x, width / height, width, height)
 
-    local = {}  # row chunk -> its rays in the tracing frame (local_rays), made beside the previous chunk's query
+    queue, trace, hits = row_queries(tracer, o32, dirs, width)
+    t, prim, u, v = hits.t, hits.prim, hits.u, hits.v
 
     def rays(r0, r1):
         """The float64 and float32 camera rays of rows r0:r1."""
@@ -536,7 +536,7 @@ def primary_steps(scene, tracer, t_s: float, width: int, height: int, prev_t_s: 
             o64[a:b, c] = cam[c]
         o32[a:b] = o64[a:b]
         dirs[a:b] = d64[a:b]
-        local[r0] = local_rays(tracer, o32[a:b], dirs[a:b])
+        queue(r0, r1)
 
     def pixels(r0, r1):
         """The G-buffer fields of rows r0:r1 from their hits."""
@@ -545,13 +545,7 @@ def primary_steps(scene, tracer, t_s: float, width: int, height: int, prev_t_s: 
                 position[a:b], geo[a:b], normal[a:b], albedo[a:b], emission[a:b], depth[a:b], material[a:b],
                 kind[a:b], motion[a:b])
 
-    def trace(r0, r1):
-        a, b = r0 * width, r1 * width
-        h = trace_local(tracer, local.pop(r0), o32[a:b], dirs[a:b])
-        t[a:b], prim[a:b], u[a:b], v[a:b] = h.t, h.prim, h.u, h.v
-
     def result():
-        hits = Hits(t, prim, u, v)
         valid = hits.prim >= 0
         hw = (height, width)
         g = GBuffer(position=position.reshape(*hw, 3), normal=normal.reshape(*hw, 3),
@@ -587,6 +581,27 @@ def row_chunks(height: int, width: int) -> list:
         done += w
         bounds.append(round(height * done / sum(weight)))
     return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def row_queries(tracer, origins, dirs, width: int):
+    """The closest-hit queries of an image's rays (row-major, ``width`` per row) by row chunk, for :func:`row_steps`:
+    ``(queue, trace, hits)``. ``queue(r0, r1)``, the end of a chunk's make, puts rows r0:r1's rays in the tracer's
+    frame (:func:`suite.core.pipeline.local_rays`, off the tracing thread); ``trace(r0, r1)`` queries them and
+    writes their hits into ``hits``, the whole image's."""
+    n = len(dirs)
+    hits = Hits(np.empty(n, np.float32), np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32))
+    local = {}  # first row of a chunk -> its query, made beside the previous chunk's
+
+    def queue(r0, r1):
+        a, b = r0 * width, r1 * width
+        local[r0] = local_rays(tracer, origins[a:b], dirs[a:b])
+
+    def trace(r0, r1):
+        a, b = r0 * width, r1 * width
+        h = trace_local(tracer, local.pop(r0), origins[a:b], dirs[a:b])
+        hits.t[a:b], hits.prim[a:b], hits.u[a:b], hits.v[a:b] = h.t, h.prim, h.u, h.v
+
+    return queue, trace, hits
 
 
 def row_steps(height: int, width: int, make, trace, finish) -> list:

@@ -114,7 +114,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
                   "intersect": (lambda: dev.intersect(o_dev, d_dev, 0.0, tmax_dev), lambda: dev.raw_intersect(ray))}
     for query in ("occluded", "intersect"):
         t = interleaved([("suite", device_fns[query][0]), ("raw", device_fns[query][1]),
-                          ("numpy_suite", numpy_fns[query][0]), ("numpy_raw", numpy_fns[query][1])], repeats)
+                         ("numpy_suite", numpy_fns[query][0]), ("numpy_raw", numpy_fns[query][1])], repeats)
         q = queries(device_fns[query][0])
         out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"], "ratio": t["raw"] / t["suite"],
                       "queries_per_ray": q, "ratio_at_queries_per_ray": q * t["raw"] / t["suite"],
@@ -177,7 +177,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         g, rays = counted(lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s))
         ro, rd, _, rlen = as_rays(o32, d32, 0.0, np.inf, tracer.shift)
         t = interleaved([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
-                          ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
+                         ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
         gb = stage("gbuffer", 1e3 * t["gbuffer"], rays)
         stage("raw_intersect", 1e3 * t["raw"], pixels)
         out["gbuffer_over_raw_intersect"] = t["gbuffer"] / t["raw"]
@@ -215,7 +215,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
                       dr.full(dev.Float, 1e37, pixels))
     g = dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)
     t = interleaved([("gbuffer", lambda: dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
-                      ("raw", lambda: dev.raw_intersect(ray))], repeats)
+                     ("raw", lambda: dev.raw_intersect(ray))], repeats)
     gb = stage("gbuffer", 1e3 * t["gbuffer"], g.rays, note="fused: one kernel")
     stage("raw_intersect", 1e3 * t["raw"], pixels, note="the same camera rays, held in device memory")
     out["gbuffer_over_raw_intersect"] = gb["ms"] / (1e3 * t["raw"])
@@ -223,8 +223,8 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
     if lights:
         rays_dev = dsh.shadow_rays(g, lights, tracer)
         t = interleaved([("pass", lambda: dsh.point_light_visibility(g, lights, tracer)),
-                          ("raw", lambda: dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]))],
-                         repeats)
+                         ("raw", lambda: dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]))],
+                        repeats)
         stage("visibility", 1e3 * t["pass"], vis_rays)
         stage("raw_occluded", 1e3 * t["raw"], vis.rays, note="the pass's rays, held in device memory")
         out["visibility_raw_over_pass"] = t["raw"] / t["pass"]
