@@ -65,14 +65,18 @@ class RecordingTracer:
         self._keep("o", o, d, tmin, tmax)
         return self.t.occluded(o, d, tmin, tmax)
 
+    def _keep_local(self, kind, o, d, length):
+        # Copies: the caller may reuse its buffers for its next query (depth peeling does), and the backend
+        # overwrites lengths.
+        self.log.append((kind, np.array(o.T if self.soa_origins else o, np.float32, order="C"),
+                         np.array(d, np.float32, order="C"), np.array(length, np.float32, order="C")))
+
     def _occluded_local(self, o, d, length):
-        self.log.append(("o", np.ascontiguousarray(o.T if self.soa_origins else o, np.float32), np.array(d),
-                         np.array(length)))
+        self._keep_local("o", o, d, length)
         return self.t.occluded_local(o, d, length)
 
     def _intersect_local(self, o, d, length):
-        self.log.append(("i", np.ascontiguousarray(o.T if self.soa_origins else o, np.float32), np.array(d),
-                         np.array(length)))
+        self._keep_local("i", o, d, length)
         return self.t.intersect_local(o, d, length)
 
 

@@ -35,18 +35,24 @@ class Geometry:
         self.rays = 0
 
     def intersect(self, origins, dirs, tmin=0.0) -> Hits:
-        n = len(dirs)
+        o, d, tmin_a, length = as_rays(origins, dirs, tmin, np.inf, self.shift)
+        hits = self.intersect_local(o, d, length)
+        hits.t += tmin_a
+        return hits
+
+    def intersect_local(self, o, d, length) -> Hits:
+        """Closest hits of rays already in this geometry's frame (``as_rays`` with its ``shift``); ``t`` is measured
+        from ``o``, misses read t = inf and prim = -1. Embree may overwrite ``length``."""
+        n = len(d)
         self.rays += n
         if self.scene is None or n == 0:
             return Hits(np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32),
                         np.zeros(n, np.float32))
-        o, d, tmin_a, length = as_rays(origins, dirs, tmin, np.inf, self.shift)
         res = self.scene.run(o, d, dists=length, output=1)
         prim = np.asarray(res["primID"], np.int64)
         t = np.asarray(res["tfar"], np.float32).copy()
         miss = prim < 0
         t[miss] = np.inf
-        t += tmin_a
         if self.ids is not None:
             prim = np.where(miss, -1, self.ids[np.maximum(prim, 0)])
         return Hits(t, prim, np.asarray(res["u"], np.float32), np.asarray(res["v"], np.float32))
@@ -61,7 +67,7 @@ def peel_client(triangles: np.ndarray, view: LayerView, layers: int, subsets: np
     shape = (view.height, view.width)
     if subsets is None:
         geo = Geometry(triangles)
-        return peel(geo.intersect, o32, d32, layers, shape=shape), geo.rays
+        return peel(geo, o32, d32, layers, shape=shape), geo.rays
     t = np.full((layers,) + shape, np.inf, np.float32)
     prim = np.full((layers,) + shape, -1, np.int64)
     u = np.zeros((layers,) + shape, np.float32)

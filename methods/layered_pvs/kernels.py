@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from suite.core.trace.base import MAX_RAY_LENGTH
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 INV_PI = 1.0 / np.pi
@@ -244,46 +245,56 @@ def _past(t, scale32):
     return np.nextafter(t * scale32, np.float32(np.inf))
 
 
-def _peel_hits(prim, t, u, v, idx, keep_mask, use_keep, k, scale32, t_out, p_out, u_out, v_out, origins, dirs,
-               idx_out, start_out, o_out, d_out):
+def _peel_hits(prim, t, u, v, idx, start, keep_mask, use_keep, k, scale32, t_out, p_out, u_out, v_out, origins, dirs,
+               shift, max_length, idx_out, start_out, o_out, d_out, len_out, queue_next, c_next, idx_nx, start_nx,
+               o_nx, d_nx, len_nx):
     """One closest-hit query of layer ``k`` of the depth peeling (§4.1.2) taken in: a hit on a kept triangle (any
-    hit without ``use_keep``) becomes the ray's fragment of layer k; a hit outside the PVS is stepped over, the ray
-    (pixel ``idx[i]``) compacted into the next query from just past it, its origin and direction gathered from
-    ``origins`` / ``dirs``; a miss ends the ray. ``idx`` may be ``idx_out`` itself (compaction in place). Returns
-    the number of rays to trace again."""
+    hit without ``use_keep``) becomes the ray's fragment of layer k, and with ``queue_next`` its ray is queued for
+    layer k+1 from just past it (slots from ``c_next`` on of the ``*_nx`` query); a hit outside the PVS is stepped
+    over, the ray (pixel ``idx[i]``) queued again from just past it (:func:`_queue_ray`); a miss ends the ray. The
+    query's ``t`` is measured from its advanced origin: the ray's distance is ``t + start`` (the float32 sum
+    ``Tracer.intersect`` makes). ``idx`` and ``start`` may be ``idx_out`` and ``start_out`` themselves (compaction
+    in place: slot ``i`` is read before any slot up to it is written). Returns the number of rays to trace again
+    and the next layer's count."""
     c = 0
     for i in range(len(prim)):
         f = prim[i]
         if f < 0:
             continue
         j = idx[i]
+        ti = np.float32(t[i] + start[i])
         if not use_keep or keep_mask[f]:
-            t_out[k, j], p_out[k, j], u_out[k, j], v_out[k, j] = t[i], f, u[i], v[i]
+            t_out[k, j], p_out[k, j], u_out[k, j], v_out[k, j] = ti, f, u[i], v[i]
+            if queue_next:
+                _queue_ray(c_next, j, _past(ti, scale32), origins, dirs, shift, max_length, idx_nx, start_nx, o_nx,
+                           d_nx, len_nx)
+                c_next += 1
             continue
-        _queue_ray(c, j, _past(t[i], scale32), origins, dirs, idx_out, start_out, o_out, d_out)
+        _queue_ray(c, j, _past(ti, scale32), origins, dirs, shift, max_length, idx_out, start_out, o_out, d_out,
+                   len_out)
         c += 1
-    return c
+    return c, c_next
 
 
-def _queue_ray(c, j, start, origins, dirs, idx_out, start_out, o_out, d_out):
-    """Slot ``c`` of the next query: pixel ``j``'s ray (its origin and direction) from ``start`` on."""
+def _queue_ray(c, j, start, origins, dirs, shift, max_length, idx_out, start_out, o_out, d_out, len_out):
+    """Slot ``c`` of the next query: pixel ``j``'s ray from ``start`` on, in the tracing frame as
+    :func:`suite.core.trace.base.as_rays` puts it (the bits of its compiled shift pass and of its lengths): origin
+    ``float32(float64(o) - shift)`` advanced by ``float32(d * start)`` in float32, length ``max_length - start``
+    clipped to [0, ``max_length``]."""
     idx_out[c] = j
     start_out[c] = start
     for a in range(3):
-        o_out[c, a] = origins[j, a]
+        x = np.float32(np.float64(origins[j, a]) - shift[a])
+        o_out[c, a] = np.float32(x + np.float32(dirs[j, a] * start))
         d_out[c, a] = dirs[j, a]
+    len_out[c] = min(max(np.float32(max_length - start), np.float32(0.0)), max_length)
 
 
-def _peel_next(p_k, t_k, scale32, origins, dirs, idx_out, start_out, o_out, d_out):
-    """The rays of the next layer: every pixel with a fragment in this layer (``p_k >= 0``), from just past it.
-    Returns their count."""
-    c = 0
-    for j in range(len(p_k)):
-        if p_k[j] < 0:
-            continue
-        _queue_ray(c, j, _past(t_k[j], scale32), origins, dirs, idx_out, start_out, o_out, d_out)
-        c += 1
-    return c
+def _peel_first(origins, dirs, shift, max_length, idx_out, start_out, o_out, d_out, len_out):
+    """The rays of layer 0: every pixel from its camera origin. Returns their count."""
+    for j in range(len(dirs)):
+        _queue_ray(j, j, np.float32(0.0), origins, dirs, shift, max_length, idx_out, start_out, o_out, d_out, len_out)
+    return len(dirs)
 
 
 _compiled = None
@@ -301,7 +312,7 @@ def jit():
         global _offset_origin, _choose_light, _past, _queue_ray
         _offset_origin, _choose_light, _past, _queue_ray = j(_offset_origin), j(_choose_light), j(_past), j(_queue_ray)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
-                                                 _peel_next, _shade_point_lights)}
+                                                 _peel_first, _shade_point_lights)}
     return _compiled
 
 
@@ -325,8 +336,10 @@ def warm_up() -> None:
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
     k["_shade_point_lights"](f64, f64, f64, f64, np.zeros((1, 1), np.bool_), 1.0, f32.copy())
-    k["_peel_hits"](np.zeros(1, np.int32), one32, one32, one32, i64, b, True, 0, np.float32(1), np.zeros((1, 1), np.float32),
-                    np.zeros((1, 1), np.int64), np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32), f32, f32,
-                    i64.copy(), one32.copy(), f32.copy(), f32.copy())
-    k["_peel_next"](np.zeros(1, np.int64), one32, np.float32(1), f32, f32, i64.copy(), one32.copy(), f32.copy(),
-                    f32.copy())
+    big = MAX_RAY_LENGTH
+    peel_out = (i64.copy(), one32.copy(), f32.copy(), f32.copy(), one32.copy())
+    for prim_type in (np.int32, np.int64):  # the tracers' hits, and the client geometry's
+        k["_peel_hits"](np.zeros(1, prim_type), one32, one32, one32, i64, one32, b, True, 0, np.float32(1),
+                        np.zeros((1, 1), np.float32), np.zeros((1, 1), np.int64), np.zeros((1, 1), np.float32),
+                        np.zeros((1, 1), np.float32), f32, f32, shift, big, *peel_out, True, 0, *peel_out)
+    k["_peel_first"](f32, f32, shift, big, *peel_out)

@@ -189,7 +189,7 @@ class LayeredPVS(Method):
 
         with ctx.stage("layers", place="server") as sg:
             o64, d64 = server.view_rays(view)
-            layers = server.peel(tracer.intersect, o64.astype(np.float32), d64.astype(np.float32), L,
+            layers = server.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), L,
                                  keep_mask=in_pvs, shape=(view.height, view.width))
             sg.pixels = view.width * view.height
 

@@ -16,6 +16,7 @@ import numpy as np
 from suite.core import shading
 from suite.core.gbuffer import camera_rays, surface_attributes
 from suite.core.scene.model import CameraPose
+from suite.core.trace.base import MAX_RAY_LENGTH
 from suite.core.trace.robust import offset_ray_origin
 
 from methods.layered_pvs import kernels
@@ -140,17 +141,20 @@ class Layers:
         return self.valid.sum(axis=0)
 
 
-def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, max_skips: int = 256,
+def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, max_skips: int = 256,
          shape=None, keep_mask: np.ndarray | None = None) -> Layers:
     """Ray-traced depth peeling (§4.1.2): layer k is the nearest hit past layer k-1's hit (``tmin`` = that distance
     plus a relative epsilon). ``keep_mask`` (bool per triangle; or ``keep``, prim -> bool) restricts primary hits to
     the PVS: a hit on another triangle is stepped over and the ray traced again from just past it (secondary and
-    shadow rays are not affected). ``intersect(o, d, tmin) -> Hits``; origins and directions float32 (N, 3).
+    shadow rays are not affected). ``tracer`` answers ``intersect_local`` on rays in its frame (its ``shift`` and
+    ``soa_origins``); origins and directions float32 (N, 3).
 
-    Between queries, one compiled pass (:mod:`methods.layered_pvs.kernels`) takes in the hits and gathers the
-    next query's rays into buffers allocated once; a ``keep`` callable takes :func:`peel_reference` instead."""
+    Between queries, one compiled pass (:mod:`methods.layered_pvs.kernels`) takes in the hits and writes the next
+    query's rays, already in the tracer's frame and with their lengths (the arrays ``Tracer.intersect`` would make
+    of origins, directions and ``tmin``), into buffers allocated once; a ``keep`` callable takes
+    :func:`peel_reference` instead."""
     if keep is not None and keep_mask is None:
-        return peel_reference(intersect, origins, dirs, layers, keep, max_skips, shape)
+        return peel_reference(tracer.intersect, origins, dirs, layers, keep, max_skips, shape)
     kern = kernels.jit()
     n = len(dirs)
     t_out = np.full((layers, n), np.inf, np.float32)
@@ -159,22 +163,26 @@ def peel(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=Non
     v_out = np.zeros((layers, n), np.float32)
     use_keep = keep_mask is not None
     mask = np.ascontiguousarray(keep_mask, np.bool_) if use_keep else np.zeros(1, np.bool_)
-    origins, dirs = np.ascontiguousarray(origins), np.ascontiguousarray(dirs)
+    origins, dirs = np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(dirs, np.float32)
     scale32 = np.float32(1 + PEEL_REL_EPS)
-    idx_b, start_b = np.empty(n, np.int64), np.empty(n, np.float32)
-    o_b, d_b = np.empty_like(origins), np.empty_like(dirs)
-    # Layer 0: every pixel from the camera (the per-ray tmin array as the reference passes it).
-    idx, start, o, d, m = np.arange(n), np.zeros(n, np.float32), origins, dirs, n
+    shift = np.zeros(3) if getattr(tracer, "shift", None) is None else np.asarray(tracer.shift, np.float64)
+    soa = bool(getattr(tracer, "soa_origins", False))
+    # The queries of this layer and of the next: pixel, start distance, tracing-frame origin, direction and length
+    # of each ray, allocated once.
+    query, nxt = ((np.empty(n, np.int64), np.empty(n, np.float32), np.empty((n, 3), np.float32),
+                   np.empty((n, 3), np.float32), np.empty(n, np.float32)) for _ in range(2))
+    m = kern["_peel_first"](origins, dirs, shift, MAX_RAY_LENGTH, *query)
     for k in range(layers):
+        idx, start, o, d, length = query
+        m_next = 0
         for _ in range(max_skips):
             if m == 0:
                 break
-            h = intersect(o[:m], d[:m], start[:m])
-            m = kern["_peel_hits"](h.prim, h.t, h.u, h.v, idx[:m], mask, use_keep, k, scale32, t_out, p_out, u_out,
-                                   v_out, origins, dirs, idx_b, start_b, o_b, d_b)
-            idx, start, o, d = idx_b, start_b, o_b, d_b
-        m = kern["_peel_next"](p_out[k], t_out[k], scale32, origins, dirs, idx_b, start_b, o_b, d_b)
-        idx, start, o, d = idx_b, start_b, o_b, d_b
+            h = tracer.intersect_local(np.ascontiguousarray(o[:m].T) if soa else o[:m], d[:m], length[:m])
+            m, m_next = kern["_peel_hits"](h.prim, h.t, h.u, h.v, idx[:m], start[:m], mask, use_keep, k, scale32,
+                                           t_out, p_out, u_out, v_out, origins, dirs, shift, MAX_RAY_LENGTH, *query,
+                                           k + 1 < layers, m_next, *nxt)
+        query, nxt, m = nxt, query, m_next
         if m == 0:
             break
     shp = (layers,) + tuple(shape) if shape is not None else (layers, n)

@@ -81,7 +81,8 @@ def camera_rays(pose, fov_deg: float, width: int, height: int, dtype=np.float32)
     dirs = np.empty((height * width, 3), dtype)
     _kernels()[3](forward, right, up, tan_x, width / height, int(width), int(height), 0, int(height), dirs)
     origins = np.empty_like(dirs)
-    origins[:] = np.asarray(pose.position, dtype)
+    for c in range(3):  # column by column: numpy's broadcast of a 3-vector over rows is several times slower
+        origins[:, c] = pose.position[c]
     return origins, dirs
 
 

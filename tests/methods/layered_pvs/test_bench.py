@@ -12,3 +12,44 @@ def test01_bench_stores_stage_ratios_codec_rates_client_cost_and_images(tmp_path
     assert {r["codec"] for r in out["codecs"]} >= {"quadtree_mask", "rle_huffman_mask", "jpeg_q25_444", "pvs_patch"}
     doc = json.loads((tmp_path / "bench" / "layered_pvs.json").read_text())
     assert doc["images"] and all((tmp_path / "bench" / "layered_pvs" / n).is_file() for n in doc["images"])
+
+
+def test02_the_recorded_rays_are_the_ones_the_stage_traced():
+    """Depth peeling writes each query's rays into buffers it reuses for the next query: the recording keeps copies,
+    so replaying a recorded query gives the hits the stage got."""
+    import numpy as np
+
+    from methods.layered_pvs import server
+    from suite.core.scene import load
+    from suite.core.trace import make
+
+    scene = load("living_room")
+    tracer = make("embree", scene)
+    answers = []
+
+    class Answers:  # the tracer, keeping every answer it gave
+        shift, soa_origins, scene, counters = tracer.shift, tracer.soa_origins, tracer.scene, tracer.counters
+
+        def intersect(self, *a, **k):
+            return tracer.intersect(*a, **k)
+
+        def occluded(self, *a, **k):
+            return tracer.occluded(*a, **k)
+
+        def intersect_local(self, o, d, length):
+            h = tracer.intersect_local(o, d, length)
+            answers.append((h.prim.copy(), h.t.copy()))
+            return h
+
+        def occluded_local(self, o, d, length):
+            return tracer.occluded_local(o, d, length)
+
+    rec = bench.RecordingTracer(Answers())
+    w, h = 48, 27
+    o, d = server.view_rays(server.LayerView(scene.camera.pose_at(0.5), scene.camera.fov_deg, w, h))
+    keep = np.random.default_rng(2).random(scene.num_faces) < 0.6  # hits stepped over: several queries per layer
+    server.peel(rec, o.astype(np.float32), d.astype(np.float32), 3, keep_mask=keep, shape=(h, w))
+    assert len(rec.log) == len(answers) > 3
+    for (kind, ro, rd, rlen), (prim, t) in zip(rec.log, answers):
+        again = tracer.intersect_local(ro.copy(), rd.copy(), rlen.copy())
+        assert kind == "i" and np.array_equal(again.prim, prim) and np.array_equal(again.t, t)

@@ -30,7 +30,7 @@ def many_lights():
     w, h = 32, 18
     view = sv.LayerView(scene.camera.pose_at(T_S), scene.camera.fov_deg, w, h)
     o64, d64 = sv.view_rays(view)
-    layers = sv.peel(tracer.intersect, o64.astype(np.float32), d64.astype(np.float32), 2, shape=(h, w))
+    layers = sv.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), 2, shape=(h, w))
     return scene, tracer, sv.fragments(scene, layers, o64, d64, T_S)
 
 
@@ -53,12 +53,12 @@ def test01_compiled_peeling_matches_the_numpy_reference(restricted):
         keep[::3] = False
     ref = sv.peel_reference(tracer.intersect, o, d, 6, keep=None if keep is None else (lambda p: keep[p]),
                             shape=(h, w))
-    got = sv.peel(tracer.intersect, o, d, 6, keep_mask=keep, shape=(h, w))
+    got = sv.peel(tracer, o, d, 6, keep_mask=keep, shape=(h, w))
     _same_layers(ref, got)
     assert ref.valid.sum() > w * h            # more than one layer holds fragments
     # a keep callable still works (the reference path)
     if restricted:
-        _same_layers(ref, sv.peel(tracer.intersect, o, d, 6, keep=lambda p: keep[p], shape=(h, w)))
+        _same_layers(ref, sv.peel(tracer, o, d, 6, keep=lambda p: keep[p], shape=(h, w)))
 
 
 def test02_direct_illumination_matches_compose_direct(many_lights):
@@ -115,9 +115,9 @@ def test05_peeling_and_path_tracing_equal_their_references(name):
     w, h, t_s = 48, 27, 0.5
     o64, d64 = camera_rays(scene.camera.pose_at(t_s), scene.camera.fov_deg, w, h, dtype=np.float64)
     in_pvs = np.random.default_rng(1).random(scene.num_faces) < 0.7  # a PVS that leaves faces out
-    args = (tracer.intersect, o64.astype(np.float32), d64.astype(np.float32), 3)
-    fast = sv.peel(*args, keep_mask=in_pvs, shape=(h, w))
-    ref = sv.peel_reference(*args, keep=lambda prim: in_pvs[prim], shape=(h, w))
+    args = (o64.astype(np.float32), d64.astype(np.float32), 3)
+    fast = sv.peel(tracer, *args, keep_mask=in_pvs, shape=(h, w))
+    ref = sv.peel_reference(tracer.intersect, *args, keep=lambda prim: in_pvs[prim], shape=(h, w))
     for field in ("prim", "t", "u", "v"):
         assert np.array_equal(getattr(fast, field), getattr(ref, field), equal_nan=True), field
     assert (fast.prim[1] >= 0).any() and (fast.prim[0] < 0).any()  # a second layer; holes where the PVS ends

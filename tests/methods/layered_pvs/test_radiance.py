@@ -49,7 +49,7 @@ def first_layer():
     w, h = RES
     view = sv.LayerView(scene.camera.pose_at(T_S), scene.camera.fov_deg, w, h)
     o64, d64 = sv.view_rays(view)
-    layers = sv.peel(tracer.intersect, o64.astype(np.float32), d64.astype(np.float32), 1, shape=(h, w))
+    layers = sv.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), 1, shape=(h, w))
     frag = sv.fragments(scene, layers, o64, d64, T_S)
     raw, denoised = [], []
     for seed in range(SEEDS):
