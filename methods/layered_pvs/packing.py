@@ -240,7 +240,74 @@ def slot_texel(layout: TileLayout, x: np.ndarray, y: np.ndarray, slot: np.ndarra
 
 def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
     """Packed texture (Fig. 4.7) and its ternary pixel mask (§4.5.2): 1 = a fragment, 0 = an empty slot before
-    the pixel's last fragment, ANY = after it, or texels no slot maps to."""
+    the pixel's last fragment, ANY = after it, or texels no slot maps to. One compiled pass over the slots'
+    pixels, each stored slot at its :func:`slot_texel` address (the bits of :func:`pack_reference`)."""
+    L, h, w = slot_occupied.shape
+    tex = np.zeros((layout.texture_height, w, 3), np.uint8)
+    mask = np.full((layout.texture_height, w), ANY, np.int8)
+    layer_index = np.ascontiguousarray(layout.layer_index, np.int64)
+    if layer_index.shape[0] == 0:  # no tiled slot: one row of "none" keeps the kernel's arguments typed alike
+        layer_index = np.full((1,) + tuple(layout.block_counts.shape), -1, np.int64)
+    bad = _pack_kernel()(np.ascontiguousarray(slot_colour, np.uint8), np.ascontiguousarray(slot_occupied, np.bool_),
+                         int(layout.tile), int(layout.full_layers), int(layout.height), layout.order == "layer",
+                         layer_index, np.ascontiguousarray(layout.first_index, np.int64),
+                         np.ascontiguousarray(layout.block_counts, np.int64), int(layout.tiles_in_row), np.int8(ANY),
+                         tex, mask)
+    if bad >= 0:
+        raise ValueError(f"slot {bad} holds fragments in blocks whose count excludes it")
+    return tex, mask
+
+
+_pack = None
+
+
+def _pack_kernel():
+    global _pack
+    if _pack is None:
+        import numba
+
+        @numba.njit(cache=True, nogil=True)
+        def run(colour, occupied, t, full_layers, height, layer_first, layer_index, first_index, block_counts,
+                tiles_in_row, any_value, tex, mask):
+            L, h, w = occupied.shape
+            lt = layer_index.shape[0]
+            for y in range(h):
+                for x in range(w):
+                    last = -1
+                    for s in range(L):
+                        if occupied[s, y, x]:
+                            last = s
+                    by, bx = y // t, x // t
+                    for s in range(L):
+                        # Algorithm 4.1 (slot_texel for one pixel and slot)
+                        if s < full_layers:
+                            tx, ty = x, s * height + y
+                        else:
+                            j = s - full_layers
+                            if layer_first:
+                                tile_index = layer_index[min(j, lt - 1), by, bx]
+                                stored = j < block_counts[by, bx] and tile_index >= 0
+                            else:
+                                tile_index = first_index[by, bx] + j
+                                stored = j < block_counts[by, bx]
+                            if not stored:
+                                if occupied[s, y, x]:
+                                    return s
+                                continue
+                            tx = (tile_index % tiles_in_row) * t + x % t
+                            ty = full_layers * height + (tile_index // tiles_in_row) * t + y % t
+                        for c in range(3):
+                            tex[ty, tx, c] = colour[s, y, x, c]
+                        mask[ty, tx] = 1 if occupied[s, y, x] else (0 if s < last else any_value)
+            return -1
+
+        _pack = run
+    return _pack
+
+
+def pack_reference(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
+    """:func:`pack` as numpy gathers per slot over :func:`slot_texel` (the reference its compiled pass is tested
+    against)."""
     L, h, w = slot_occupied.shape
     tex = np.zeros((layout.texture_height, w, 3), np.uint8)
     mask = np.full((layout.texture_height, w), ANY, np.int8)
@@ -293,7 +360,71 @@ def relocate_back(slot_colour: np.ndarray, slot_mask: np.ndarray, counts: np.nda
 
 def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:
     """§4.1.5: inside every tile, empty texels take the average colour of their non-empty 4-neighbours, round after
-    round, until no empty texel is left (a tile with no fragment stays as it is)."""
+    round, until no empty texel is left (a tile with no fragment stays as it is). One compiled pass, tile by tile
+    (a tile's rounds depend on that tile only), with the float32 sums of :func:`colour_fill_reference`."""
+    out = np.ascontiguousarray(tex, np.float32)
+    if out is tex:
+        out = out.copy()
+    have = np.array(filled, np.bool_)
+    _fill_kernel()(out, have, int(tile), int(max_rounds or 2 * tile))
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+_fill = None
+
+
+def _fill_kernel():
+    global _fill
+    if _fill is None:
+        import numba
+
+        @numba.njit(cache=True, nogil=True)
+        def run(out, have, tile, rounds):
+            h, w = have.shape
+            new = np.zeros((tile, tile), np.bool_)
+            avg = np.zeros((tile, tile, 3), np.float32)
+            zero = np.float32(0.0)
+            for y0 in range(0, h, tile):
+                for x0 in range(0, w, tile):
+                    y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
+                    for _ in range(rounds):
+                        # Every empty texel from the state at the start of the round, then all of them written.
+                        grew = False
+                        for y in range(y0, y1):
+                            for x in range(x0, x1):
+                                new[y - y0, x - x0] = False
+                                if have[y, x]:
+                                    continue
+                                s0, s1, s2, n = zero, zero, zero, zero
+                                for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):  # up, down, left, right
+                                    yy, xx = y + dy, x + dx
+                                    if yy < y0 or yy >= y1 or xx < x0 or xx >= x1 or not have[yy, xx]:
+                                        continue
+                                    s0 += out[yy, xx, 0]
+                                    s1 += out[yy, xx, 1]
+                                    s2 += out[yy, xx, 2]
+                                    n += np.float32(1.0)
+                                if n > 0:
+                                    new[y - y0, x - x0] = True
+                                    avg[y - y0, x - x0, 0] = s0 / n
+                                    avg[y - y0, x - x0, 1] = s1 / n
+                                    avg[y - y0, x - x0, 2] = s2 / n
+                                    grew = True
+                        if not grew:
+                            break
+                        for y in range(y0, y1):
+                            for x in range(x0, x1):
+                                if new[y - y0, x - x0]:
+                                    have[y, x] = True
+                                    for c in range(3):
+                                        out[y, x, c] = avg[y - y0, x - x0, c]
+
+        _fill = run
+    return _fill
+
+
+def colour_fill_reference(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:
+    """:func:`colour_fill` as whole-texture numpy rounds (the reference its compiled pass is tested against)."""
     out = tex.astype(np.float32)
     have = np.asarray(filled, bool).copy()
     rounds = max_rounds or 2 * tile

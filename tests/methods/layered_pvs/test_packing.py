@@ -97,3 +97,37 @@ def test06_colour_filling_fills_every_empty_texel_of_a_nonempty_tile_only():
     out = packing.colour_fill(tex, filled, 8)
     assert (out[:, :8] == (200, 100, 50)).all()     # the first tile takes its one colour everywhere
     assert (out[:, 8:] == 0).all()                  # the empty second tile stays as it was
+
+
+@pytest.mark.parametrize("shape, rounds", [((40, 48), None), ((37, 29), None), ((40, 48), 2)])
+def test07_compiled_colour_filling_gives_the_bits_of_the_numpy_rounds(shape, rounds):
+    rng = np.random.default_rng(5)
+    tex = rng.integers(0, 256, shape + (3,), dtype=np.uint8)
+    filled = rng.random(shape) < 0.08          # sparse: many rounds, some tiles with no fragment at all
+    filled[:8, :8] = False
+    tex[~filled] = 0
+    got = packing.colour_fill(tex, filled, 8, rounds)
+    ref = packing.colour_fill_reference(tex, filled, 8, rounds)
+    assert got.dtype == ref.dtype and np.array_equal(got, ref)
+    assert (got[:8, :8] == 0).all() and (got[~filled] > 0).any()
+
+
+@pytest.mark.parametrize("order", packing.ORDERS)
+@pytest.mark.parametrize("full_layers", [0, 1, 4])
+def test08_compiled_packing_gives_the_texture_and_mask_of_the_numpy_gathers(order, full_layers):
+    rng = np.random.default_rng(20 + full_layers)
+    count, valid, depth, colour = _layers(rng, L=4, h=32, w=40)
+    slot_colour, occupied = packing.to_slots(colour, valid, packing.relocate(depth, valid, 8))
+    counts = np.maximum(packing.block_layer_counts(occupied, 8) - full_layers, 0)
+    layout = packing.make_layout(counts, 40, 32, 8, full_layers, order)
+    got, ref = packing.pack(slot_colour, occupied, layout), packing.pack_reference(slot_colour, occupied, layout)
+    for a, b in zip(got, ref):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert set(np.unique(got[1])) <= {0, 1, codecs.ANY} and (got[1] == 1).sum() == valid.sum()
+    # a count that leaves out a slot holding fragments is refused, as by the reference
+    if counts.any():
+        short = np.where(counts > 0, counts - 1, 0)
+        bad = packing.make_layout(short, 40, 32, 8, full_layers, order)
+        for fn in (packing.pack, packing.pack_reference):
+            with pytest.raises(ValueError, match="excludes it"):
+                fn(slot_colour, occupied, bad)
