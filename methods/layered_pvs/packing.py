@@ -19,6 +19,18 @@ from methods.layered_pvs.codecs import ANY
 ORDERS = ("block", "layer")
 
 
+_compiled: dict = {}
+
+
+def _jit(fn):
+    """``fn`` compiled (numba, on first use; cached on disk)."""
+    if fn.__name__ not in _compiled:
+        import numba
+
+        _compiled[fn.__name__] = numba.njit(cache=True, nogil=True)(fn)
+    return _compiled[fn.__name__]
+
+
 # ------------------------------------------------------------------------------------------ relocation
 
 def _neighbour_views(a: np.ndarray, tile: int, fill):
@@ -49,81 +61,71 @@ def block_layer_counts(occupied: np.ndarray, tile: int) -> np.ndarray:
     return used.reshape(h // tile, tile, w // tile, tile).max(axis=(1, 3))
 
 
-_relocate_kernel = None
+def _relocate_pass(slot_frag, slot_depth, n_block, tile, max_rounds):
+    """Algorithm 2 in place on slot arrays, block by block (see :func:`relocate`)."""
+    L, h, w = slot_frag.shape
+    moved = np.zeros((h, w), np.bool_)
+    for by in range(h // tile):
+        for bx in range(w // tile):
+            nb = n_block[by, bx]
+            y0, x0 = by * tile, bx * tile
+            for k in range(nb - 1):
+                for _ in range(max_rounds):
+                    any_move = False
+                    moved[y0:y0 + tile, x0:x0 + tile] = False
+                    # Decide on the slot state at the start of the round (one GPU pass in the thesis).
+                    for y in range(y0, y0 + tile):
+                        for x in range(x0, x0 + tile):
+                            if slot_frag[k, y, x] < 0:
+                                continue
+                            remaining = 0
+                            for s in range(k, L):
+                                if slot_frag[s, y, x] >= 0:
+                                    remaining += 1
+                            if remaining >= nb - k:
+                                continue
+                            d = slot_depth[k, y, x]
+                            closer = False
+                            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                                yy, xx = y + dy, x + dx
+                                if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
+                                    continue
+                                nn = slot_depth[k + 1, yy, xx]
+                                nc = slot_depth[k, yy, xx]
+                                if np.isfinite(nn) and abs(d - nn) < abs(d - nc):
+                                    closer = True
+                            if closer:
+                                moved[y, x] = True
+                                any_move = True
+                    if not any_move:
+                        break
+                    for y in range(y0, y0 + tile):
+                        for x in range(x0, x0 + tile):
+                            if not moved[y, x]:
+                                continue
+                            gap = k + 1
+                            while slot_frag[gap, y, x] >= 0:
+                                gap += 1
+                            for s in range(gap, k, -1):
+                                slot_frag[s, y, x] = slot_frag[s - 1, y, x]
+                                slot_depth[s, y, x] = slot_depth[s - 1, y, x]
+                            slot_frag[k, y, x] = -1
+                    for y in range(y0, y0 + tile):
+                        for x in range(x0, x0 + tile):
+                            if not moved[y, x]:
+                                continue
+                            total = 0.0
+                            cnt = 0
+                            for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                                yy, xx = y + dy, x + dx
+                                if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
+                                    continue
+                                nn = slot_depth[k + 1, yy, xx]
+                                if np.isfinite(nn):
+                                    total += nn
+                                    cnt += 1
+                            slot_depth[k, y, x] = total / cnt if cnt > 0 else slot_depth[k + 1, y, x]
 
-
-def _kernel():
-    global _relocate_kernel
-    if _relocate_kernel is None:
-        import numba
-
-        @numba.njit(cache=True, nogil=True)
-        def run(slot_frag, slot_depth, n_block, tile, max_rounds):
-            L, h, w = slot_frag.shape
-            moved = np.zeros((h, w), np.bool_)
-            for by in range(h // tile):
-                for bx in range(w // tile):
-                    nb = n_block[by, bx]
-                    y0, x0 = by * tile, bx * tile
-                    for k in range(nb - 1):
-                        for _ in range(max_rounds):
-                            any_move = False
-                            moved[y0:y0 + tile, x0:x0 + tile] = False
-                            # Decide on the slot state at the start of the round (one GPU pass in the thesis).
-                            for y in range(y0, y0 + tile):
-                                for x in range(x0, x0 + tile):
-                                    if slot_frag[k, y, x] < 0:
-                                        continue
-                                    remaining = 0
-                                    for s in range(k, L):
-                                        if slot_frag[s, y, x] >= 0:
-                                            remaining += 1
-                                    if remaining >= nb - k:
-                                        continue
-                                    d = slot_depth[k, y, x]
-                                    closer = False
-                                    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                                        yy, xx = y + dy, x + dx
-                                        if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
-                                            continue
-                                        nn = slot_depth[k + 1, yy, xx]
-                                        nc = slot_depth[k, yy, xx]
-                                        if np.isfinite(nn) and abs(d - nn) < abs(d - nc):
-                                            closer = True
-                                    if closer:
-                                        moved[y, x] = True
-                                        any_move = True
-                            if not any_move:
-                                break
-                            for y in range(y0, y0 + tile):
-                                for x in range(x0, x0 + tile):
-                                    if not moved[y, x]:
-                                        continue
-                                    gap = k + 1
-                                    while slot_frag[gap, y, x] >= 0:
-                                        gap += 1
-                                    for s in range(gap, k, -1):
-                                        slot_frag[s, y, x] = slot_frag[s - 1, y, x]
-                                        slot_depth[s, y, x] = slot_depth[s - 1, y, x]
-                                    slot_frag[k, y, x] = -1
-                            for y in range(y0, y0 + tile):
-                                for x in range(x0, x0 + tile):
-                                    if not moved[y, x]:
-                                        continue
-                                    total = 0.0
-                                    cnt = 0
-                                    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                                        yy, xx = y + dy, x + dx
-                                        if yy < y0 or yy >= y0 + tile or xx < x0 or xx >= x0 + tile:
-                                            continue
-                                        nn = slot_depth[k + 1, yy, xx]
-                                        if np.isfinite(nn):
-                                            total += nn
-                                            cnt += 1
-                                    slot_depth[k, y, x] = total / cnt if cnt > 0 else slot_depth[k + 1, y, x]
-
-        _relocate_kernel = run
-    return _relocate_kernel
 
 
 def relocate(depth: np.ndarray, valid: np.ndarray, tile: int, max_rounds: int = 64):
@@ -141,7 +143,7 @@ def relocate(depth: np.ndarray, valid: np.ndarray, tile: int, max_rounds: int = 
     n_block = block_layer_counts(valid, tile).astype(np.int64)
     slot_frag = np.where(valid, np.arange(L)[:, None, None], -1).astype(np.int64)
     slot_depth = np.where(valid, depth, np.inf).astype(np.float64)
-    _kernel()(slot_frag, slot_depth, n_block, int(tile), int(max_rounds))
+    _jit(_relocate_pass)(slot_frag, slot_depth, n_block, int(tile), int(max_rounds))
     slot_of = np.full((L, h, w), -1, np.int64)
     s, y, x = np.nonzero(slot_frag >= 0)
     slot_of[slot_frag[s, y, x], y, x] = s
@@ -248,7 +250,7 @@ def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout)
     layer_index = np.ascontiguousarray(layout.layer_index, np.int64)
     if layer_index.shape[0] == 0:  # no tiled slot: one row of "none" keeps the kernel's arguments typed alike
         layer_index = np.full((1,) + tuple(layout.block_counts.shape), -1, np.int64)
-    bad = _pack_kernel()(np.ascontiguousarray(slot_colour, np.uint8), np.ascontiguousarray(slot_occupied, np.bool_),
+    bad = _jit(_pack_pass)(np.ascontiguousarray(slot_colour, np.uint8), np.ascontiguousarray(slot_occupied, np.bool_),
                          int(layout.tile), int(layout.full_layers), int(layout.height), layout.order == "layer",
                          layer_index, np.ascontiguousarray(layout.first_index, np.int64),
                          np.ascontiguousarray(layout.block_counts, np.int64), int(layout.tiles_in_row), np.int8(ANY),
@@ -258,51 +260,40 @@ def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout)
     return tex, mask
 
 
-_pack = None
-
-
-def _pack_kernel():
-    global _pack
-    if _pack is None:
-        import numba
-
-        @numba.njit(cache=True, nogil=True)
-        def run(colour, occupied, t, full_layers, height, layer_first, layer_index, first_index, block_counts,
-                tiles_in_row, any_value, tex, mask):
-            L, h, w = occupied.shape
-            lt = layer_index.shape[0]
-            for y in range(h):
-                for x in range(w):
-                    last = -1
-                    for s in range(L):
+def _pack_pass(colour, occupied, t, full_layers, height, layer_first, layer_index, first_index, block_counts,
+               tiles_in_row, any_value, tex, mask):
+    L, h, w = occupied.shape
+    lt = layer_index.shape[0]
+    for y in range(h):
+        for x in range(w):
+            last = -1
+            for s in range(L):
+                if occupied[s, y, x]:
+                    last = s
+            by, bx = y // t, x // t
+            for s in range(L):
+                # Algorithm 4.1 (slot_texel for one pixel and slot)
+                if s < full_layers:
+                    tx, ty = x, s * height + y
+                else:
+                    j = s - full_layers
+                    if layer_first:
+                        tile_index = layer_index[min(j, lt - 1), by, bx]
+                        stored = j < block_counts[by, bx] and tile_index >= 0
+                    else:
+                        tile_index = first_index[by, bx] + j
+                        stored = j < block_counts[by, bx]
+                    if not stored:
                         if occupied[s, y, x]:
-                            last = s
-                    by, bx = y // t, x // t
-                    for s in range(L):
-                        # Algorithm 4.1 (slot_texel for one pixel and slot)
-                        if s < full_layers:
-                            tx, ty = x, s * height + y
-                        else:
-                            j = s - full_layers
-                            if layer_first:
-                                tile_index = layer_index[min(j, lt - 1), by, bx]
-                                stored = j < block_counts[by, bx] and tile_index >= 0
-                            else:
-                                tile_index = first_index[by, bx] + j
-                                stored = j < block_counts[by, bx]
-                            if not stored:
-                                if occupied[s, y, x]:
-                                    return s
-                                continue
-                            tx = (tile_index % tiles_in_row) * t + x % t
-                            ty = full_layers * height + (tile_index // tiles_in_row) * t + y % t
-                        for c in range(3):
-                            tex[ty, tx, c] = colour[s, y, x, c]
-                        mask[ty, tx] = 1 if occupied[s, y, x] else (0 if s < last else any_value)
-            return -1
+                            return s
+                        continue
+                    tx = (tile_index % tiles_in_row) * t + x % t
+                    ty = full_layers * height + (tile_index // tiles_in_row) * t + y % t
+                for c in range(3):
+                    tex[ty, tx, c] = colour[s, y, x, c]
+                mask[ty, tx] = 1 if occupied[s, y, x] else (0 if s < last else any_value)
+    return -1
 
-        _pack = run
-    return _pack
 
 
 def pack_reference(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
@@ -366,61 +357,50 @@ def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int 
     if out is tex:
         out = out.copy()
     have = np.array(filled, np.bool_)
-    _fill_kernel()(out, have, int(tile), int(max_rounds or 2 * tile))
+    _jit(_fill_pass)(out, have, int(tile), int(max_rounds or 2 * tile))
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
-_fill = None
+def _fill_pass(out, have, tile, rounds):
+    h, w = have.shape
+    new = np.zeros((tile, tile), np.bool_)
+    avg = np.zeros((tile, tile, 3), np.float32)
+    zero = np.float32(0.0)
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
+            for _ in range(rounds):
+                # Every empty texel from the state at the start of the round, then all of them written.
+                grew = False
+                for y in range(y0, y1):
+                    for x in range(x0, x1):
+                        new[y - y0, x - x0] = False
+                        if have[y, x]:
+                            continue
+                        s0, s1, s2, n = zero, zero, zero, zero
+                        for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):  # up, down, left, right
+                            yy, xx = y + dy, x + dx
+                            if yy < y0 or yy >= y1 or xx < x0 or xx >= x1 or not have[yy, xx]:
+                                continue
+                            s0 += out[yy, xx, 0]
+                            s1 += out[yy, xx, 1]
+                            s2 += out[yy, xx, 2]
+                            n += np.float32(1.0)
+                        if n > 0:
+                            new[y - y0, x - x0] = True
+                            avg[y - y0, x - x0, 0] = s0 / n
+                            avg[y - y0, x - x0, 1] = s1 / n
+                            avg[y - y0, x - x0, 2] = s2 / n
+                            grew = True
+                if not grew:
+                    break
+                for y in range(y0, y1):
+                    for x in range(x0, x1):
+                        if new[y - y0, x - x0]:
+                            have[y, x] = True
+                            for c in range(3):
+                                out[y, x, c] = avg[y - y0, x - x0, c]
 
-
-def _fill_kernel():
-    global _fill
-    if _fill is None:
-        import numba
-
-        @numba.njit(cache=True, nogil=True)
-        def run(out, have, tile, rounds):
-            h, w = have.shape
-            new = np.zeros((tile, tile), np.bool_)
-            avg = np.zeros((tile, tile, 3), np.float32)
-            zero = np.float32(0.0)
-            for y0 in range(0, h, tile):
-                for x0 in range(0, w, tile):
-                    y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
-                    for _ in range(rounds):
-                        # Every empty texel from the state at the start of the round, then all of them written.
-                        grew = False
-                        for y in range(y0, y1):
-                            for x in range(x0, x1):
-                                new[y - y0, x - x0] = False
-                                if have[y, x]:
-                                    continue
-                                s0, s1, s2, n = zero, zero, zero, zero
-                                for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):  # up, down, left, right
-                                    yy, xx = y + dy, x + dx
-                                    if yy < y0 or yy >= y1 or xx < x0 or xx >= x1 or not have[yy, xx]:
-                                        continue
-                                    s0 += out[yy, xx, 0]
-                                    s1 += out[yy, xx, 1]
-                                    s2 += out[yy, xx, 2]
-                                    n += np.float32(1.0)
-                                if n > 0:
-                                    new[y - y0, x - x0] = True
-                                    avg[y - y0, x - x0, 0] = s0 / n
-                                    avg[y - y0, x - x0, 1] = s1 / n
-                                    avg[y - y0, x - x0, 2] = s2 / n
-                                    grew = True
-                        if not grew:
-                            break
-                        for y in range(y0, y1):
-                            for x in range(x0, x1):
-                                if new[y - y0, x - x0]:
-                                    have[y, x] = True
-                                    for c in range(3):
-                                        out[y, x, c] = avg[y - y0, x - x0, c]
-
-        _fill = run
-    return _fill
 
 
 def colour_fill_reference(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:

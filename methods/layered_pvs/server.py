@@ -267,8 +267,9 @@ class LightSampler:
     """Point lights and emissive triangles for next-event estimation at the path vertices after the primary
     fragment (§4.4: one randomly selected light per vertex). With at most ``PER_POINT_LIGHTS`` lights a light
     is chosen in proportion to its unoccluded irradiance bound at the shading point (power / squared distance, a
-    triangle at its centroid); with more, in proportion to power. Both are unbiased; the first keeps far, strong lights (the 10 km sun and sky lights of the Quake
-    levels) from taking nearly every sample from the nearby ones."""
+    triangle at its centroid); with more, in proportion to power. Both are unbiased; the first keeps far, strong
+    lights (the 10 km sun and sky lights of the Quake levels) from taking nearly every sample from the nearby
+    ones."""
 
     PER_POINT_LIGHTS = 2048
     CHUNK_ELEMENTS = 1 << 21     # points x lights per block of the per-point choice
