@@ -15,7 +15,7 @@ from suite.core.gbuffer import camera_rays, project
 from suite.core.trace.base import Hits, as_rays
 from suite.core.trace.embree import build_embree_scene
 
-from methods.layered_pvs import packing
+from methods.layered_pvs import kernels, packing
 from methods.layered_pvs.server import LayerView, Layers, past, peel
 
 
@@ -148,26 +148,16 @@ def render_frame(dec: DecodedUpdate, pose, fov_deg: float, width: int, height: i
     x_world = o[idx] + d[idx] * h.t[idx, None].astype(np.float64)
     view = dec.view
     xy, z = project(x_world, view.pose, view.fov_deg, view.width, view.height)
-    ix = np.floor(xy[:, 0]).astype(np.int64)
-    iy = np.floor(xy[:, 1]).astype(np.int64)
-    inside = (z > 0) & (ix >= 0) & (ix < view.width) & (iy >= 0) & (iy < view.height)
-    ixc, iyc = np.clip(ix, 0, view.width - 1), np.clip(iy, 0, view.height - 1)
-    eye = np.asarray(view.pose.position, np.float64)
-    to = x_world - eye
-    dist = np.linalg.norm(to, axis=1)
-    # Depth tolerance: relative, plus the depth change across one layer pixel on a slanted surface.
-    cos = np.abs((to / np.maximum(dist, 1e-30)[:, None] * dec.tri_normals[h.prim[idx]]).sum(1))
+    m = len(idx)
+    ix, iy, layer = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(m, np.int64)
+    inside, matched = np.empty(m, np.bool_), np.empty(m, np.bool_)
     pix_angle = 2 * np.tan(np.radians(view.fov_deg) / 2) / view.width
-    tol = dist * (depth_tol + 1.5 * pix_angle * np.sqrt(np.maximum(1 - cos ** 2, 0)) / np.maximum(cos, 0.05))
-    dl = dec.depth[:, iyc, ixc]                       # (L, M)
-    err = np.abs(dl - dist[None, :])
-    err[~np.isfinite(dl)] = np.inf
-    layer = np.argmin(err, axis=0)
-    best = err[layer, np.arange(len(idx))]
-    matched = inside & (best <= tol)
-    tx, ty, stored = packing.slot_texel(dec.layout, ixc, iyc, layer)
-    ok = matched & stored
-    rgb[idx[ok]] = dec.texture[ty[ok], tx[ok]]
+    kernels.jit()["_reproject_match"](x_world, np.ascontiguousarray(xy), np.ascontiguousarray(z, np.float64),
+                                      np.ascontiguousarray(h.prim[idx], np.int64), np.asarray(view.pose.position,
+                                      np.float64), np.ascontiguousarray(dec.tri_normals, np.float64),
+                                      np.ascontiguousarray(dec.depth), float(depth_tol), float(pix_angle),
+                                      int(view.width), int(view.height), ix, iy, layer, inside, matched)
+    ok = packing.fetch(dec.layout, dec.texture, ix, iy, layer, matched, idx, rgb)
     hole = np.zeros(n, bool)
     hole[idx[~ok]] = True
     filled = 0

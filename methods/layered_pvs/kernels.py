@@ -297,6 +297,37 @@ def _peel_first(origins, dirs, shift, max_length, idx_out, start_out, o_out, d_o
     return len(dirs)
 
 
+def _reproject_match(x_world, xy, z, prim, eye, tri_normals, depth, depth_tol, pix_angle, width, height, ix_out,
+                     iy_out, layer_out, inside_out, matched_out):
+    """Algorithm 4.1 on the client, per visible point (§4.3.2): its pixel in the update's view (inside the enlarged
+    frustum or not), and the layer whose depth there is closest to the point's distance from the update's eye, a
+    match when within the depth tolerance (relative ``depth_tol``, plus the depth change across one layer pixel on
+    a surface at the point's slant). The float64 operations of the numpy expressions it replaced, in their order."""
+    L = depth.shape[0]
+    for i in range(len(prim)):
+        fx, fy = np.floor(xy[i, 0]), np.floor(xy[i, 1])
+        inside = z[i] > 0 and fx >= 0 and fx < width and fy >= 0 and fy < height
+        inside_out[i] = inside
+        matched_out[i] = False
+        if not inside:
+            continue
+        ix, iy = int(fx), int(fy)
+        t0, t1, t2 = x_world[i, 0] - eye[0], x_world[i, 1] - eye[1], x_world[i, 2] - eye[2]
+        dist = np.sqrt((t0 * t0 + t1 * t1) + t2 * t2)
+        md = max(dist, 1e-30)
+        f = prim[i]
+        cos = abs((t0 / md * tri_normals[f, 0] + t1 / md * tri_normals[f, 1]) + t2 / md * tri_normals[f, 2])
+        tol = dist * (depth_tol + 1.5 * pix_angle * np.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 0.05))
+        best, layer = np.inf, 0
+        for k in range(L):
+            dl = depth[k, iy, ix]
+            e = abs(np.float64(dl) - dist) if np.isfinite(dl) else np.inf
+            if e < best:
+                best, layer = e, k
+        ix_out[i], iy_out[i], layer_out[i] = ix, iy, layer
+        matched_out[i] = best <= tol
+
+
 _compiled = None
 
 
@@ -312,7 +343,7 @@ def jit():
         global _offset_origin, _choose_light, _past, _queue_ray
         _offset_origin, _choose_light, _past, _queue_ray = j(_offset_origin), j(_choose_light), j(_past), j(_queue_ray)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
-                                                 _peel_first, _shade_point_lights)}
+                                                 _peel_first, _shade_point_lights, _reproject_match)}
     return _compiled
 
 

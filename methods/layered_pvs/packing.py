@@ -19,16 +19,20 @@ from methods.layered_pvs.codecs import ANY
 ORDERS = ("block", "layer")
 
 
-_compiled: dict = {}
+_compiled = None
 
 
-def _jit(fn):
-    """``fn`` compiled (numba, on first use; cached on disk)."""
-    if fn.__name__ not in _compiled:
+def _passes() -> dict:
+    """The compiled passes (numba, on first use; cached on disk). The texel helper is compiled first: the passes
+    that call it are typed against the compiled version."""
+    global _compiled, _texel
+    if _compiled is None:
         import numba
 
-        _compiled[fn.__name__] = numba.njit(cache=True, nogil=True)(fn)
-    return _compiled[fn.__name__]
+        j = numba.njit(cache=True, nogil=True)
+        _texel = j(_texel)
+        _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _fill_pass)}
+    return _compiled
 
 
 # ------------------------------------------------------------------------------------------ relocation
@@ -143,7 +147,7 @@ def relocate(depth: np.ndarray, valid: np.ndarray, tile: int, max_rounds: int = 
     n_block = block_layer_counts(valid, tile).astype(np.int64)
     slot_frag = np.where(valid, np.arange(L)[:, None, None], -1).astype(np.int64)
     slot_depth = np.where(valid, depth, np.inf).astype(np.float64)
-    _jit(_relocate_pass)(slot_frag, slot_depth, n_block, int(tile), int(max_rounds))
+    _passes()["_relocate_pass"](slot_frag, slot_depth, n_block, int(tile), int(max_rounds))
     slot_of = np.full((L, h, w), -1, np.int64)
     s, y, x = np.nonzero(slot_frag >= 0)
     slot_of[slot_frag[s, y, x], y, x] = s
@@ -247,53 +251,84 @@ def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout)
     L, h, w = slot_occupied.shape
     tex = np.zeros((layout.texture_height, w, 3), np.uint8)
     mask = np.full((layout.texture_height, w), ANY, np.int8)
-    layer_index = np.ascontiguousarray(layout.layer_index, np.int64)
-    if layer_index.shape[0] == 0:  # no tiled slot: one row of "none" keeps the kernel's arguments typed alike
-        layer_index = np.full((1,) + tuple(layout.block_counts.shape), -1, np.int64)
-    bad = _jit(_pack_pass)(np.ascontiguousarray(slot_colour, np.uint8), np.ascontiguousarray(slot_occupied, np.bool_),
-                         int(layout.tile), int(layout.full_layers), int(layout.height), layout.order == "layer",
-                         layer_index, np.ascontiguousarray(layout.first_index, np.int64),
-                         np.ascontiguousarray(layout.block_counts, np.int64), int(layout.tiles_in_row), np.int8(ANY),
-                         tex, mask)
+    bad = _passes()["_pack_pass"](np.ascontiguousarray(slot_colour, np.uint8),
+                                  np.ascontiguousarray(slot_occupied, np.bool_), _address(layout), np.int8(ANY), tex,
+                                  mask)
     if bad >= 0:
         raise ValueError(f"slot {bad} holds fragments in blocks whose count excludes it")
     return tex, mask
 
 
-def _pack_pass(colour, occupied, t, full_layers, height, layer_first, layer_index, first_index, block_counts,
-               tiles_in_row, any_value, tex, mask):
+def fetch(layout: TileLayout, texture: np.ndarray, x: np.ndarray, y: np.ndarray, slot: np.ndarray,
+          want: np.ndarray, dest: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Algorithm 4.1's lookup in one compiled pass: for every i with ``want[i]``, the texel of layer pixel
+    (``x[i]``, ``y[i]``) in ``slot[i]`` copied to row ``dest[i]`` of ``out`` (N, 3) where that slot is stored.
+    Returns whether it was (False where not wanted): :func:`slot_texel` for each pixel."""
+    stored = np.zeros(len(x), np.bool_)
+    _passes()["_fetch_pass"](np.asarray(x, np.int64), np.asarray(y, np.int64), np.asarray(slot, np.int64),
+                             np.asarray(want, np.bool_), _address(layout), texture, np.asarray(dest, np.int64), out,
+                             stored)
+    return stored
+
+
+def _address(layout: TileLayout) -> tuple:
+    """The layout as the compiled passes take it (:func:`_texel`)."""
+    layer_index = np.ascontiguousarray(layout.layer_index, np.int64)
+    if layer_index.shape[0] == 0:  # no tiled slot: one row of "none" keeps the passes' arguments typed alike
+        layer_index = np.full((1,) + tuple(layout.block_counts.shape), -1, np.int64)
+    return (int(layout.tile), int(layout.full_layers), int(layout.height), layout.order == "layer", layer_index,
+            np.ascontiguousarray(layout.first_index, np.int64), np.ascontiguousarray(layout.block_counts, np.int64),
+            int(layout.tiles_in_row))
+
+
+def _texel(x, y, s, address):
+    """:func:`slot_texel` for one pixel and slot: (tx, ty, stored), (0, 0, False) where the slot is not stored."""
+    t, full_layers, height, layer_first, layer_index, first_index, block_counts, tiles_in_row = address
+    if s < full_layers:
+        return x, s * height + y, True
+    by, bx = y // t, x // t
+    j = s - full_layers
+    if layer_first:
+        tile_index = layer_index[min(j, layer_index.shape[0] - 1), by, bx]
+        stored = j < block_counts[by, bx] and tile_index >= 0
+    else:
+        tile_index = first_index[by, bx] + j
+        stored = j < block_counts[by, bx]
+    if not stored:
+        return 0, 0, False
+    return (tile_index % tiles_in_row) * t + x % t, full_layers * height + (tile_index // tiles_in_row) * t + y % t, \
+        True
+
+
+def _pack_pass(colour, occupied, address, any_value, tex, mask):
     L, h, w = occupied.shape
-    lt = layer_index.shape[0]
     for y in range(h):
         for x in range(w):
             last = -1
             for s in range(L):
                 if occupied[s, y, x]:
                     last = s
-            by, bx = y // t, x // t
             for s in range(L):
-                # Algorithm 4.1 (slot_texel for one pixel and slot)
-                if s < full_layers:
-                    tx, ty = x, s * height + y
-                else:
-                    j = s - full_layers
-                    if layer_first:
-                        tile_index = layer_index[min(j, lt - 1), by, bx]
-                        stored = j < block_counts[by, bx] and tile_index >= 0
-                    else:
-                        tile_index = first_index[by, bx] + j
-                        stored = j < block_counts[by, bx]
-                    if not stored:
-                        if occupied[s, y, x]:
-                            return s
-                        continue
-                    tx = (tile_index % tiles_in_row) * t + x % t
-                    ty = full_layers * height + (tile_index // tiles_in_row) * t + y % t
+                tx, ty, stored = _texel(x, y, s, address)
+                if not stored:
+                    if occupied[s, y, x]:
+                        return s
+                    continue
                 for c in range(3):
                     tex[ty, tx, c] = colour[s, y, x, c]
                 mask[ty, tx] = 1 if occupied[s, y, x] else (0 if s < last else any_value)
     return -1
 
+
+def _fetch_pass(x, y, slot, want, address, texture, dest, out, stored):
+    for i in range(len(x)):
+        if not want[i]:
+            continue
+        tx, ty, ok = _texel(x[i], y[i], slot[i], address)
+        stored[i] = ok
+        if ok:
+            for c in range(3):
+                out[dest[i], c] = texture[ty, tx, c]
 
 
 def pack_reference(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
@@ -357,7 +392,7 @@ def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int 
     if out is tex:
         out = out.copy()
     have = np.array(filled, np.bool_)
-    _jit(_fill_pass)(out, have, int(tile), int(max_rounds or 2 * tile))
+    _passes()["_fill_pass"](out, have, int(tile), int(max_rounds or 2 * tile))
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 

@@ -127,3 +127,51 @@ def test05_peeling_and_path_tracing_equal_their_references(name):
     for a, b in zip(out, expected):
         assert np.array_equal(a, b)
     assert np.isfinite(out[0]).all() and out[0].max() > 0.0
+
+
+def test06_client_layer_match_gives_the_choices_of_the_numpy_expressions():
+    """Algorithm 4.1's per-point match (kernels._reproject_match) against its statement in numpy: pixel in the
+    update's view, nearest layer depth, tolerance test; points behind the eye, outside the view, on pixels with no
+    fragment and with a non-finite projection included."""
+    from methods.layered_pvs import kernels
+
+    rng = np.random.default_rng(4)
+    L, H, W, M = 3, 12, 20, 4000
+    depth = np.where(rng.random((L, H, W)) < 0.7, rng.uniform(1, 10, (L, H, W)), np.inf).astype(np.float32)
+    depth[:, :2, :3] = np.inf                                   # pixels with no fragment
+    eye = np.array([0.5, -0.25, 2.0])
+    x_world = eye + rng.normal(size=(M, 3)) * 4
+    xy = rng.uniform(-3, W + 3, (M, 2))
+    xy[:5] = np.nan
+    z = rng.normal(1, 1, M)                                     # some behind the eye
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    prim = rng.integers(0, 50, M)
+    tol_rel, pix_angle = 0.01, 0.02
+    x_world[6:400] = eye + (x_world[6:400] - eye) / np.linalg.norm(x_world[6:400] - eye, axis=1, keepdims=True) \
+        * depth[0, 5, 5].astype(np.float64)                       # points at a layer's distance: matches
+    xy[6:400] = (5.5, 5.5)
+
+    out = [np.zeros(M, np.int64) for _ in range(3)] + [np.zeros(M, np.bool_) for _ in range(2)]
+    kernels.jit()["_reproject_match"](x_world, xy, z, prim, eye, normals, depth, tol_rel, pix_angle, W, H, *out)
+    ix, iy, layer, inside, matched = out
+
+    with np.errstate(invalid="ignore"):
+        fx, fy = np.floor(xy[:, 0]), np.floor(xy[:, 1])
+        ref_inside = (z > 0) & (fx >= 0) & (fx < W) & (fy >= 0) & (fy < H)
+    i = np.flatnonzero(ref_inside)
+    ixc, iyc = fx[i].astype(np.int64), fy[i].astype(np.int64)
+    to = x_world[i] - eye
+    dist = np.linalg.norm(to, axis=1)
+    cos = np.abs((to / np.maximum(dist, 1e-30)[:, None] * normals[prim[i]]).sum(1))
+    tol = dist * (tol_rel + 1.5 * pix_angle * np.sqrt(np.maximum(1 - cos ** 2, 0)) / np.maximum(cos, 0.05))
+    dl = depth[:, iyc, ixc]
+    err = np.abs(dl - dist[None, :])
+    err[~np.isfinite(dl)] = np.inf
+    ref_layer = np.argmin(err, axis=0)
+    ref_matched = err[ref_layer, np.arange(len(i))] <= tol
+
+    assert np.array_equal(inside, ref_inside) and not matched[~ref_inside].any()
+    assert np.array_equal(ix[i], ixc) and np.array_equal(iy[i], iyc) and np.array_equal(layer[i], ref_layer)
+    assert np.array_equal(matched[i], ref_matched)
+    assert 300 < ref_matched.sum() < len(i) and (~ref_inside).sum() > 500

@@ -124,6 +124,15 @@ def test08_compiled_packing_gives_the_texture_and_mask_of_the_numpy_gathers(orde
     for a, b in zip(got, ref):
         assert a.dtype == b.dtype and np.array_equal(a, b)
     assert set(np.unique(got[1])) <= {0, 1, codecs.ANY} and (got[1] == 1).sum() == valid.sum()
+    # the client's lookup (Algorithm 4.1, compiled) reads what slot_texel addresses
+    yy, xx = (a.ravel() for a in np.mgrid[0:32, 0:40])
+    want = np.arange(xx.size) % 7 != 0
+    for s in range(4):
+        tx, ty, stored = packing.slot_texel(layout, xx, yy, np.full(xx.size, s))
+        out = np.zeros((xx.size, 3), np.uint8)
+        ok = packing.fetch(layout, got[0], xx, yy, np.full(xx.size, s), want, np.arange(xx.size)[::-1], out)
+        assert np.array_equal(ok, stored & want)
+        assert np.array_equal(out[::-1][ok], got[0][ty[ok], tx[ok]]) and not out[::-1][~ok].any()
     # a count that leaves out a slot holding fragments is refused, as by the reference
     if counts.any():
         short = np.where(counts > 0, counts - 1, 0)
