@@ -297,6 +297,34 @@ def _peel_first(origins, dirs, shift, max_length, idx_out, start_out, o_out, d_o
     return len(dirs)
 
 
+def _gather_fragments(k, y, x, prim_l, u_l, v_l, origins, dirs, prim, u, v, o, d):
+    """The layer samples of the fragments (``k``, ``y``, ``x``): triangle, barycentrics, and the ray of their pixel
+    (``fragments``' gathers)."""
+    w = prim_l.shape[2]
+    for i in range(len(k)):
+        prim[i], u[i], v[i] = prim_l[k[i], y[i], x[i]], u_l[k[i], y[i], x[i]], v_l[k[i], y[i], x[i]]
+        pix = y[i] * w + x[i]
+        for c in range(3):
+            o[i, c] = origins[pix, c]
+            d[i, c] = dirs[pix, c]
+
+
+def _face_fragments(ng, ns, d, em, ng_out, ns_out, em_out, front):
+    """``server._facing`` and the front-facing emission per fragment, with its bits: the geometric normal turned
+    towards the ray's origin (``-sign(ng . d) ng``, sign 0 taken as 1), the shading normal onto its side, emission
+    kept on front faces only (einsum's dot order)."""
+    for i in range(ng.shape[0]):
+        dot = (ng[i, 0] * d[i, 0] + ng[i, 2] * d[i, 2]) + ng[i, 1] * d[i, 1]
+        flip = 1.0 if dot > 0 else (-1.0 if dot < 0 else (1.0 if dot == 0 else dot))
+        for c in range(3):
+            ng_out[i, c] = -flip * ng[i, c]
+        side = (ns[i, 0] * ng_out[i, 0] + ns[i, 2] * ng_out[i, 2]) + ns[i, 1] * ng_out[i, 1]
+        front[i] = flip < 0
+        for c in range(3):
+            ns_out[i, c] = -ns[i, c] if side < 0 else ns[i, c]
+            em_out[i, c] = em[i, c] if front[i] else 0.0
+
+
 def _reproject_match(x_world, xy, z, prim, eye, tri_normals, depth, depth_tol, pix_angle, width, height, ix_out,
                      iy_out, layer_out, inside_out, matched_out):
     """Algorithm 4.1 on the client, per visible point (§4.3.2): its pixel in the update's view (inside the enlarged
@@ -343,7 +371,8 @@ def jit():
         global _offset_origin, _choose_light, _past, _queue_ray
         _offset_origin, _choose_light, _past, _queue_ray = j(_offset_origin), j(_choose_light), j(_past), j(_queue_ray)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
-                                                 _peel_first, _shade_point_lights, _reproject_match)}
+                                                 _peel_first, _shade_point_lights, _reproject_match,
+                                                 _gather_fragments, _face_fragments)}
     return _compiled
 
 

@@ -251,6 +251,29 @@ def _facing(ng, ns, d):
 
 
 def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
+    """Every layer fragment's surface (:func:`suite.core.gbuffer.surface_attributes`), its normals facing the layer
+    camera and its emission on front faces only. The gathers and the facing are compiled passes
+    (:mod:`methods.layered_pvs.kernels`) with the bits of :func:`fragments_reference`."""
+    kern = kernels.jit()
+    k, y, x = np.nonzero(layers.valid)
+    n = len(k)
+    prim, u, v = np.empty(n, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
+    o, d = np.empty((n, 3)), np.empty((n, 3))
+    kern["_gather_fragments"](k, y, x, np.ascontiguousarray(layers.prim, np.int64),
+                              np.ascontiguousarray(layers.u, np.float32), np.ascontiguousarray(layers.v, np.float32),
+                              np.ascontiguousarray(origins64, np.float64), np.ascontiguousarray(dirs64, np.float64),
+                              prim, u, v, o, d)
+    p, ng, ns, alb, em = surface_attributes(scene, scene.positions_at(t_s), scene.normals_at(t_s), prim, u, v, o, d)
+    em = np.ascontiguousarray(em)
+    ng_f, ns_f, em_f, front = np.empty((n, 3)), np.empty((n, 3)), np.empty_like(em), np.empty(n, np.bool_)
+    kern["_face_fragments"](np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64), d, em, ng_f,
+                            ns_f, em_f, front)
+    return Fragments((k, y, x), p, ng_f, ns_f, alb, em_f, d)
+
+
+def fragments_reference(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
+    """:func:`fragments` as numpy gathers and :func:`_facing` (the reference its compiled passes are tested
+    against)."""
     w = layers.prim.shape[2]
     k, y, x = np.nonzero(layers.valid)
     pix = y * w + x

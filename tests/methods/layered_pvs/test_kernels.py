@@ -175,3 +175,20 @@ def test06_client_layer_match_gives_the_choices_of_the_numpy_expressions():
     assert np.array_equal(ix[i], ixc) and np.array_equal(iy[i], iyc) and np.array_equal(layer[i], ref_layer)
     assert np.array_equal(matched[i], ref_matched)
     assert 300 < ref_matched.sum() < len(i) and (~ref_inside).sum() > 500
+
+
+@pytest.mark.parametrize("name", ["oa:aggressor@pak1-maps", "gallery"])
+def test07_compiled_fragments_equal_their_reference(name):
+    """The fragments' gathers, facing normals and front-face emission: the bits (signs of zeros included) of the
+    numpy reference, on layers that hold back faces and emitters."""
+    scene, tracer = _scene(name)
+    w, h = 64, 36
+    view = sv.LayerView(scene.camera.pose_at(T_S), scene.camera.fov_deg, w, h)
+    o64, d64 = sv.view_rays(view)
+    layers = sv.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), 4, shape=(h, w))
+    got, ref = sv.fragments(scene, layers, o64, d64, T_S), sv.fragments_reference(scene, layers, o64, d64, T_S)
+    assert all(np.array_equal(a, b) for a, b in zip(got.index, ref.index))
+    for field in ("position", "geo_normal", "normal", "albedo", "emission", "view_dir"):
+        a, b = getattr(got, field), getattr(ref, field)
+        assert a.dtype == b.dtype and np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b)), field
+    assert layers.valid[1:].any()
