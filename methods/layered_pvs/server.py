@@ -755,22 +755,26 @@ def _svgf():
         # error_model="numpy": a weight sum that underflows gives inf/nan here instead of raising (guarded below).
         # parallel: the rows on the cores, every output fragment written by one iteration (the same bits as one
         # thread); rows taken alternately from the image's two halves, so that both cores meet its sky and its
-        # depth complexity alike.
+        # depth complexity alike. Grids are (H, W, L[, 3]): a tap's search through the layers reads neighbours.
         @numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
         def atrous(col, var, pos, nrm, valid, depth, step, pix_angle, shift_scale, sigma_l, sigma_n, out_col,
                    out_var):
-            L, H, W = valid.shape
+            H, W, L = valid.shape
             h = (1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16)
             half = (H + 1) // 2
+            radius = np.empty((5, 5))  # each tap's distance from the centre in taps
+            for dy in range(-2, 3):
+                for dx in range(-2, 3):
+                    radius[dy + 2, dx + 2] = math.sqrt(float(dx * dx + dy * dy))
             for i in numba.prange(H):
                 y = i // 2 if i % 2 == 0 else half + i // 2
-                for k in range(L):
-                    for x in range(W):
-                        if not valid[k, y, x]:
+                for x in range(W):
+                    for k in range(L):
+                        if not valid[y, x, k]:
                             continue
-                        lc = 0.2126 * col[k, y, x, 0] + 0.7152 * col[k, y, x, 1] + 0.0722 * col[k, y, x, 2]
-                        sd = math.sqrt(max(var[k, y, x], 0.0))
-                        foot = depth[k, y, x] * pix_angle
+                        lc = 0.2126 * col[y, x, k, 0] + 0.7152 * col[y, x, k, 1] + 0.0722 * col[y, x, k, 2]
+                        sd = math.sqrt(max(var[y, x, k], 0.0))
+                        foot = depth[y, x, k] * pix_angle
                         wsum = 0.0
                         vsum = 0.0
                         c0 = 0.0
@@ -787,16 +791,16 @@ def _svgf():
                                 # §4.4.1: among the fragments at this tap, the one closest to the centre
                                 # fragment's plane shifted along its normal (towards the camera) by a distance
                                 # growing with the camera distance and the tap's screen distance.
-                                shift = shift_scale * foot * math.sqrt(float(dx * dx + dy * dy)) * step
+                                shift = shift_scale * foot * radius[dy + 2, dx + 2] * step
                                 best = -1
                                 best_d = 1e300
                                 best_pd = 0.0
                                 for m in range(L):
-                                    if not valid[m, yy, xx]:
+                                    if not valid[yy, xx, m]:
                                         break
-                                    pd = (nrm[k, y, x, 0] * (pos[m, yy, xx, 0] - pos[k, y, x, 0])
-                                          + nrm[k, y, x, 1] * (pos[m, yy, xx, 1] - pos[k, y, x, 1])
-                                          + nrm[k, y, x, 2] * (pos[m, yy, xx, 2] - pos[k, y, x, 2]))
+                                    pd = (nrm[y, x, k, 0] * (pos[yy, xx, m, 0] - pos[y, x, k, 0])
+                                          + nrm[y, x, k, 1] * (pos[yy, xx, m, 1] - pos[y, x, k, 1])
+                                          + nrm[y, x, k, 2] * (pos[yy, xx, m, 2] - pos[y, x, k, 2]))
                                     dd = abs(pd - shift)
                                     if dd < best_d:
                                         best_d = dd
@@ -804,28 +808,32 @@ def _svgf():
                                         best_pd = pd
                                 if best < 0:
                                     continue
-                                ln = 0.2126 * col[best, yy, xx, 0] + 0.7152 * col[best, yy, xx, 1] \
-                                    + 0.0722 * col[best, yy, xx, 2]
-                                ndot = (nrm[k, y, x, 0] * nrm[best, yy, xx, 0] + nrm[k, y, x, 1] * nrm[best, yy, xx, 1]
-                                        + nrm[k, y, x, 2] * nrm[best, yy, xx, 2])
-                                wn = max(ndot, 0.0) ** sigma_n
-                                dist_px = math.sqrt(float(dx * dx + dy * dy)) * step
+                                ln = 0.2126 * col[yy, xx, best, 0] + 0.7152 * col[yy, xx, best, 1] \
+                                    + 0.0722 * col[yy, xx, best, 2]
+                                ndot = (nrm[y, x, k, 0] * nrm[yy, xx, best, 0] + nrm[y, x, k, 1] * nrm[yy, xx, best, 1]
+                                        + nrm[y, x, k, 2] * nrm[yy, xx, best, 2])
+                                # max(ndot, 0) ** sigma_n, without the power where it is exactly 1 (half the taps:
+                                # equal normals) or 0; a zero weight adds nothing, so such a tap is skipped.
+                                if ndot <= 0.0:
+                                    continue
+                                wn = 1.0 if ndot == 1.0 else ndot ** sigma_n
+                                dist_px = radius[dy + 2, dx + 2] * step
                                 wz = math.exp(-abs(best_pd) / (foot * (dist_px + 1.0) + 1e-12))
                                 wl = math.exp(-abs(lc - ln) / (sigma_l * sd + 1e-10))
                                 wgt = h[dy + 2] * h[dx + 2] * wn * wz * wl
                                 wsum += wgt
-                                vsum += wgt * wgt * var[best, yy, xx]
-                                c0 += wgt * col[best, yy, xx, 0]
-                                c1 += wgt * col[best, yy, xx, 1]
-                                c2 += wgt * col[best, yy, xx, 2]
+                                vsum += wgt * wgt * var[yy, xx, best]
+                                c0 += wgt * col[yy, xx, best, 0]
+                                c1 += wgt * col[yy, xx, best, 1]
+                                c2 += wgt * col[yy, xx, best, 2]
                         if wsum > 1e-150:
-                            out_col[k, y, x, 0] = c0 / wsum
-                            out_col[k, y, x, 1] = c1 / wsum
-                            out_col[k, y, x, 2] = c2 / wsum
-                            out_var[k, y, x] = vsum / (wsum * wsum)
+                            out_col[y, x, k, 0] = c0 / wsum
+                            out_col[y, x, k, 1] = c1 / wsum
+                            out_col[y, x, k, 2] = c2 / wsum
+                            out_var[y, x, k] = vsum / (wsum * wsum)
                         else:
-                            out_col[k, y, x, :] = col[k, y, x, :]
-                            out_var[k, y, x] = var[k, y, x]
+                            out_col[y, x, k, :] = col[y, x, k, :]
+                            out_var[y, x, k] = var[y, x, k]
 
         _svgf_kernel = atrous
     return _svgf_kernel
@@ -864,16 +872,16 @@ def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: floa
     Differs from the thesis: no temporal accumulation (updates are ~180 ms apart), so the variance comes from the
     per-fragment sample moments only, and it is not pre-blurred."""
     kern = _svgf()
-    col = np.ascontiguousarray(illum, np.float64)
-    var = np.ascontiguousarray(variance, np.float64)
-    pos = np.ascontiguousarray(position, np.float64)
-    nrm = np.ascontiguousarray(normal, np.float64)
-    val = np.ascontiguousarray(valid, np.bool_)
-    dep = np.ascontiguousarray(np.where(valid, depth, 0.0), np.float64)
+    # The kernel's layout: (H, W, L[, 3]), a pixel's fragments side by side.
+    pixel_major = lambda a, dt: np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dt)  # noqa: E731
+    col, var = pixel_major(illum, np.float64), pixel_major(variance, np.float64)
+    pos, nrm = pixel_major(position, np.float64), pixel_major(normal, np.float64)
+    val = pixel_major(valid, np.bool_)
+    dep = pixel_major(np.where(valid, depth, 0.0), np.float64)
     for i in range(iterations):
         out_c = np.zeros_like(col)
         out_v = np.zeros_like(var)
         kern(col, var, pos, nrm, val, dep, 1 << i, float(pix_angle), float(shift_scale), float(sigma_l),
              float(sigma_n), out_c, out_v)
         col, var = out_c, out_v
-    return col.astype(np.float32)
+    return np.ascontiguousarray(np.moveaxis(col, 2, 0), np.float32)
