@@ -300,9 +300,9 @@ def _surface_pass(positions, normals, faces, face_material, albedo_table, emissi
                   tex_data, uvs, o, d, prim, u, v, t, valid, prim_out, u_out, v_out, t_out, p, ng, ns, ng_view,
                   ns_view, albedo, emission, material):
     """Per hit, the fields of :func:`surface_from_hits_reference`: suite.core.gbuffer's float64 hit geometry
-    (``_hit_geometry``; barycentrics (1 - u) - v in float64, the position on the ray's plane, normals), the bilinear repeating
-    texture lookup of ``lookup_texture`` (rounded to float32 as it returns), and the facing of :func:`_attributes`
-    (np.einsum's dot products sum as (x + z) + y); background values for a miss."""
+    (``_hit_geometry``; barycentrics (1 - u) - v in float64, the position on the ray's plane, normals), the bilinear
+    repeating texture lookup of ``lookup_texture`` (rounded to float32 as it returns), and the facing of
+    :func:`_attributes` (np.einsum's dot products sum as (x + z) + y); background values for a miss."""
     for i in range(prim.shape[0]):
         f = prim[i]
         b1, b2 = np.float64(u[i]), np.float64(v[i])
