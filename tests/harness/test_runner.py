@@ -61,6 +61,28 @@ def test03_identical_config_and_seed_give_identical_counters_bytes_and_images(fa
         list(_counters(results.Path(a["run_dir"]))["image_sha256"])
 
 
+def test03b_a_rehearsal_runs_once_per_process_and_configuration_and_changes_no_result(fake_config, fake_core,
+                                                                                      tmp_path, monkeypatch):
+    """The first frames of a configuration are rehearsed once per process before the timed run (measured clock
+    only); the run after a rehearsal and a rerun without one give the same counters, bytes and images."""
+    monkeypatch.setattr(fake_core, "_REHEARSED", set())
+    calls = []
+    simulate = fake_core.simulate
+    monkeypatch.setattr(fake_core, "simulate", lambda *a, **k: calls.append(a[3]["frames"]) or simulate(*a, **k))
+    cfg = fake_config(net="bw=8mbps,delay=5ms", seed=3, frames=5)
+    a = fake_core.execute(cfg, tmp_path / "a")
+    assert calls[0] == fake_core.REHEARSAL_FRAMES and "rehearsal" in a["summary"]["run_wall_s"]
+    calls.clear()
+    b = fake_core.execute(cfg, tmp_path / "b")
+    assert calls and calls == [5] * len(calls)   # the run (and its zero-latency run): no second rehearsal
+    pd.testing.assert_frame_equal(_counters(results.Path(a["run_dir"])), _counters(results.Path(b["run_dir"])))
+    # another resolution is rehearsed; the work clock, which charges counted work only, is not
+    assert fake_core.rehearse(None, None, None, fake_config(resolution="8x8", clock="work"), None) is False
+    calls.clear()
+    fake_core.execute(fake_config(resolution="8x8", frames=5), tmp_path / "c")
+    assert calls[0] == fake_core.REHEARSAL_FRAMES
+
+
 def test04_a_failing_run_leaves_nothing_that_looks_like_a_result(fake_config, fake_core, tmp_path, monkeypatch):
     def boom(*a, **k):
         raise RuntimeError("disk full")
