@@ -518,8 +518,8 @@ def prepared_data(cls, cfg: dict, scene, tracer, results_root: Path, env: dict) 
 
 PREPARED_DIR = ".prepared"
 
-# Frames of a rehearsal (:func:`rehearse`): enough that the temporal stages (history, reprojection) run too.
-REHEARSAL_FRAMES = 3
+# Frames of a rehearsal (:func:`rehearse`): two, so that the temporal stages (history, reprojection) run too.
+REHEARSAL_FRAMES = 2
 _REHEARSED: set = set()  # (process, method, parameters, scene, backend, resolution) rehearsed
 
 
