@@ -23,9 +23,9 @@ test: $(STAMP)
 smoke: $(STAMP)
 	$(VENV)/bin/splitbench reproduce --preset smoke
 
-# The quick preset (each method's own grid), the shared cross-method matrix (suite/harness/compare.toml; two
-# worker processes, one per core: its runs are single-threaded), the method benchmarks whose figures the report
-# sections show, then the report.
+# The quick preset (each method's own grid), the shared cross-method matrix (suite/harness/compare.toml, timed by
+# the work clock, so the two worker processes' runs do not skew each other's times), the method benchmarks whose
+# figures the report sections show, then the report.
 COMPARE_WORKERS ?= 2
 reproduce: $(STAMP)
 	$(VENV)/bin/splitbench reproduce --preset quick --no-report
