@@ -131,7 +131,6 @@ def _relocate_pass(slot_frag, slot_depth, n_block, tile, max_rounds):
                             slot_depth[k, y, x] = total / cnt if cnt > 0 else slot_depth[k + 1, y, x]
 
 
-
 def relocate(depth: np.ndarray, valid: np.ndarray, tile: int, max_rounds: int = 64):
     """Fragment relocation (Algorithm 2, §4.1.4, §5.2) on peeled layers.
 
@@ -388,9 +387,7 @@ def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int 
     """§4.1.5: inside every tile, empty texels take the average colour of their non-empty 4-neighbours, round after
     round, until no empty texel is left (a tile with no fragment stays as it is). One compiled pass, tile by tile
     (a tile's rounds depend on that tile only), with the float32 sums of :func:`colour_fill_reference`."""
-    out = np.ascontiguousarray(tex, np.float32)
-    if out is tex:
-        out = out.copy()
+    out = np.array(tex, np.float32, order="C")  # copies: the pass fills in place
     have = np.array(filled, np.bool_)
     _passes()["_fill_pass"](out, have, int(tile), int(max_rounds or 2 * tile))
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
@@ -435,7 +432,6 @@ def _fill_pass(out, have, tile, rounds):
                             have[y, x] = True
                             for c in range(3):
                                 out[y, x, c] = avg[y - y0, x - x0, c]
-
 
 
 def colour_fill_reference(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:
