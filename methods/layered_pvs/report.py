@@ -29,6 +29,34 @@ PAPER = {"dssim_static": 0.067, "dssim_dynamic": 0.088, "dssim_village": 0.118, 
          "server_ms": 135.0, "client_fps": 60.0, "quadtree_saving_pct": 20.0, "subset_saving_pct": 25.0,
          "subset_kb": 4.0}
 
+_SPONZA_PAPER_RUN = "the quick preset's paper run on Dabrovic Sponza over wan-50m at 5.5 updates/s"
+E = verdicts.Expected
+CLAIMS = verdicts.ClaimList(METHOD, {
+    "002.dssim_dynamic": E("mean DSSIM per client frame, Sponza with dynamic lights", "§6.3, Table 7.1",
+                           _SPONZA_PAPER_RUN, PAPER["dssim_dynamic"]),
+    "002.nrmse_dynamic": E("mean NRMSE per client frame, Sponza with dynamic lights", "§6.3, Table 7.1",
+                           _SPONZA_PAPER_RUN, PAPER["nrmse_dynamic"]),
+    "002.dssim_village": E("mean DSSIM per client frame, the game Village", "§6.3, Table 7.1",
+                           "a paper run on an OpenArena level (quick preset)", PAPER["dssim_village"]),
+    "002.dssim_static": E("mean DSSIM 0.067 / NRMSE 0.044 on static Crytek Sponza", "§6.3, Table 7.1",
+                          "Crytek Sponza", PAPER["dssim_static"]),
+    "002.update_rate": E("about 5.5 scene updates per second", "§6, Table 7.1", _SPONZA_PAPER_RUN,
+                         PAPER["updates_per_s"], "1/s"),
+    "002.bytes_per_update": E("about 300 kB per update (max 550 kB): JPEG ~100, video ~50, pixel mask ~50, PVS "
+                              "~80 kB", "§6, Table 7.2", _SPONZA_PAPER_RUN, PAPER["bytes_update_kb"], "kB"),
+    "002.server_ms": E("server processing about 135 ms per update (PVS 3.7, path tracing 96 incl. denoise 69, "
+                       "packing 2.6 ms)", "§6.1, Table 7.2", _SPONZA_PAPER_RUN, PAPER["server_ms"], "ms"),
+    "002.latency": E("scene latency 340-380 ms on the 50 Mbit/s, 17 ms path", "§6, Table 7.1",
+                     _SPONZA_PAPER_RUN + " with a staleness per client frame", PAPER["latency_ms"], "ms"),
+    "002.quadtree_vs_rle": E("the binary quadtree pixel mask is 10-30 % smaller than RLE + Huffman", "§4.2",
+                             "runs that store both pixel-mask codecs' bytes", PAPER["quadtree_saving_pct"], "%"),
+    "002.subset_peeling_time": E("triangle-subset peeling saves 10-40 % of the client's layer generation",
+                                 "§4.5.1", "the subset_peeling run and " + _SPONZA_PAPER_RUN,
+                                 PAPER["subset_saving_pct"], "%"),
+    "002.subset_bytes": E("triangle-subset masks cost 3-5 kB more per update", "§4.5.1",
+                          "the subset_peeling run and " + _SPONZA_PAPER_RUN, PAPER["subset_kb"], "kB"),
+})
+
 
 def _runs(run_dirs) -> pd.DataFrame:
     rows = []
@@ -103,47 +131,41 @@ def claims(runs: pd.DataFrame) -> list:
                                           "of a low-spp suite reference")
     if len(sponza) and np.isfinite(sponza["dssim"].iloc[0]):
         r = sponza.iloc[0]
-        c.append(verdicts.judge("002.dssim_dynamic", "mean DSSIM per client frame, Sponza with dynamic lights",
-                                "§6.3, Table 7.1", PAPER["dssim_dynamic"], float(r["dssim"]), "", tol_q,
-                                setting=setting(r), method=METHOD,
+        c.append(verdicts.judge(*CLAIMS.head("002.dssim_dynamic"), PAPER["dssim_dynamic"], float(r["dssim"]), "",
+                                tol_q, setting=setting(r), method=METHOD,
                                 note=f"{not_avail}; Dabrovic Sponza (moving lights) stands in at "
                                      f"{r['resolution']}, not 1920x1080."))
-        c.append(verdicts.judge("002.nrmse_dynamic", "mean NRMSE per client frame, Sponza with dynamic lights",
-                                "§6.3, Table 7.1", PAPER["nrmse_dynamic"], float(r["nrmse"]), "",
+        c.append(verdicts.judge(*CLAIMS.head("002.nrmse_dynamic"), PAPER["nrmse_dynamic"], float(r["nrmse"]), "",
                                 Tolerance(absolute=0.04, why="Table 7.1's spread (0.04-0.19)"), setting=setting(r),
                                 method=METHOD, note=f"{not_avail}; Dabrovic Sponza stands in."))
     if len(oa) and np.isfinite(oa["dssim"].iloc[0]):
         r = oa.iloc[0]
-        c.append(verdicts.judge("002.dssim_village", "mean DSSIM per client frame, the game Village",
-                                "§6.3, Table 7.1", PAPER["dssim_village"], float(r["dssim"]), "", tol_q,
-                                setting=setting(r), method=METHOD,
+        c.append(verdicts.judge(*CLAIMS.head("002.dssim_village"), PAPER["dssim_village"], float(r["dssim"]), "",
+                                tol_q, setting=setting(r), method=METHOD,
                                 note=f"{not_avail}; the OpenArena level {r['scene']} stands in for a game level."))
-    c.append(verdicts.not_measurable("002.dssim_static", "mean DSSIM 0.067 / NRMSE 0.044 on static Crytek Sponza",
-                                     "§6.3, Table 7.1", f"{not_avail}, and the suite's Dabrovic Sponza has moving "
-                                     "lights", paper_value=PAPER["dssim_static"], method=METHOD))
+    c.append(verdicts.not_measurable(*CLAIMS.head("002.dssim_static"),
+                                     f"{not_avail}, and the suite's Dabrovic Sponza has moving lights",
+                                     paper_value=PAPER["dssim_static"], method=METHOD))
     if len(sponza):
         r = sponza.iloc[0]
-        c.append(verdicts.by_calibration("002.update_rate", "about 5.5 scene updates per second", "§6, Table 7.1",
+        c.append(verdicts.by_calibration(*CLAIMS.head("002.update_rate"),
                                          "update_fps is set to the thesis's 5.5 updates/s (the harness starts an "
                                          "update no earlier than its period)", paper_value=PAPER["updates_per_s"],
                                          suite_value=float(r["updates_per_s"]), unit="1/s", setting=setting(r),
                                          method=METHOD))
-        c.append(verdicts.not_measurable("002.bytes_per_update", "about 300 kB per update (max 550 kB): JPEG ~100, "
-                                         "video ~50, pixel mask ~50, PVS ~80 kB", "§6, Table 7.2",
+        c.append(verdicts.not_measurable(*CLAIMS.head("002.bytes_per_update"),
                                          f"the suite runs at {r['resolution']} (the thesis 1920x1080, about 100x "
                                          f"the pixels); measured here {r['update_kB']:.1f} kB per update (JPEG "
                                          f"{r['jpeg_kB']:.1f}, video {r['video_kB']:.1f}, mask {r['mask_kB']:.1f}, "
                                          f"PVS {r['pvs_kB']:.1f} kB)", paper_value=PAPER["bytes_update_kb"],
                                          unit="kB", method=METHOD))
-        c.append(verdicts.not_measurable("002.server_ms", "server processing about 135 ms per update (PVS 3.7, path "
-                                         "tracing 96 incl. denoise 69, packing 2.6 ms)", "§6.1, Table 7.2",
+        c.append(verdicts.not_measurable(*CLAIMS.head("002.server_ms"),
                                          f"the thesis's server is an RTX 2080 Ti with OptiX; the suite traces on "
                                          f"{r['backend']} (CPU). Measured {r['server_ms']:.1f} ms per update with "
                                          f"the {r['clock']} clock", paper_value=PAPER["server_ms"], unit="ms",
                                          method=METHOD))
         if np.isfinite(r["staleness_ms"]):
-            c.append(verdicts.judge("002.latency", "scene latency 340-380 ms on the 50 Mbit/s, 17 ms path",
-                                    "§6, Table 7.1", PAPER["latency_ms"], float(r["staleness_ms"]), "ms",
+            c.append(verdicts.judge(*CLAIMS.head("002.latency"), PAPER["latency_ms"], float(r["staleness_ms"]), "ms",
                                     Tolerance(relative=0.3, why="Table 7.1's min-max 153-926 ms"),
                                     setting=setting(r), method=METHOD,
                                     note=f"staleness (display - input of the update shown) with the {r['clock']} "
@@ -152,8 +174,7 @@ def claims(runs: pd.DataFrame) -> list:
     qt = runs.dropna(subset=["quadtree_B"]) if "quadtree_B" in runs else runs.iloc[0:0]
     if len(qt):
         saving = float(100 * (1 - qt["quadtree_B"].sum() / qt["rle_B"].sum()))
-        c.append(verdicts.judge("002.quadtree_vs_rle", "the binary quadtree pixel mask is 10-30 % smaller than RLE + "
-                                "Huffman", "§4.2", PAPER["quadtree_saving_pct"], saving, "%",
+        c.append(verdicts.judge(*CLAIMS.head("002.quadtree_vs_rle"), PAPER["quadtree_saving_pct"], saving, "%",
                                 Tolerance(absolute=10.0, why="the thesis states a 10-30 % range"),
                                 setting={"runs": len(qt)}, method=METHOD,
                                 note="Both codecs with 'any' pixels encode the same masks of every update."))
@@ -163,18 +184,17 @@ def claims(runs: pd.DataFrame) -> list:
     if len(sub) and len(base) and np.isfinite(sub["peel_wall_ms"].iloc[0]) \
             and np.isfinite(base["peel_wall_ms"].iloc[0]):
         saving = float(100 * (1 - sub["peel_wall_ms"].iloc[0] / base["peel_wall_ms"].iloc[0]))
-        c.append(verdicts.judge("002.subset_peeling_time", "triangle-subset peeling saves 10-40 % of the client's "
-                                "layer generation", "§4.5.1", PAPER["subset_saving_pct"], saving, "%",
+        c.append(verdicts.judge(*CLAIMS.head("002.subset_peeling_time"), PAPER["subset_saving_pct"], saving, "%",
                                 Tolerance(absolute=15.0, why="the thesis states a 10-40 % range"),
                                 setting=setting(sub.iloc[0]), method=METHOD,
                                 note="measured wall time of the client's peel stage against the paper run's; "
                                      "client peeling is Embree ray casting here (a BVH per subset), not GPU "
                                      "rasterisation."))
-        c.append(verdicts.judge("002.subset_bytes", "triangle-subset masks cost 3-5 kB more per update", "§4.5.1",
+        c.append(verdicts.judge(*CLAIMS.head("002.subset_bytes"),
                                 PAPER["subset_kb"], float(sub["subset_B"].iloc[0]) / 1e3, "kB",
                                 Tolerance(absolute=1.0, why="the thesis states 3-5 kB"), setting=setting(sub.iloc[0]),
                                 method=METHOD, note="at a far smaller resolution and PVS than the thesis's."))
-    return c
+    return CLAIMS.complete(c)
 
 
 def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:

@@ -24,6 +24,40 @@ PAPER_WD = 0.65
 PAPER_WD_RANGE = (0.55, 0.8)
 PAPER_LZF_PCT = 40.0
 WD_GRID = [round(0.05 * k, 2) for k in range(21)]   # §5.1: w_d in {0, 0.05, ..., 1}
+_MAIN = "the paper variant's run on Dabrovic Sponza, one client, over dsl-3m (quick preset)"
+_SCENE_ID = {scene: scene.split()[0].lower().strip("'s") for scene in PAPER_BANDWIDTH}  # "Tony's ..." → "tony"
+E = verdicts.Expected
+CLAIMS = verdicts.ClaimList(METHOD, {
+    "004.points_dabrovic": E("Dabrovic Sponza's point set has 14.5 k points", "§5", _MAIN,
+                             PAPER_POINTS["Dabrovic Sponza"], "points"),
+    "004.bandwidth_dabrovic": E("Dabrovic Sponza needs 1.159 Mbit/s with camera and lights moving", "§5.2",
+                                _MAIN + " with steady-state responses", PAPER_BANDWIDTH["Dabrovic Sponza"], "Mbit/s"),
+    "004.roundtrip_hz": E("client and server complete a roundtrip at about 6 Hz", "§5.2",
+                          _MAIN + " with steady-state responses", PAPER_ROUNDTRIP_HZ, "Hz"),
+    **{f"004.bandwidth_{_SCENE_ID[scene]}": E(f"{scene} needs {PAPER_BANDWIDTH[scene]} Mbit/s", "§5.2", scene,
+                                              PAPER_BANDWIDTH[scene], "Mbit/s")
+       for scene in ("Tony's Barbershop (Half-Life 2)", "Conference Room", "Crytek Sponza")},
+    "004.lzf": E("LZF makes messages up to 40 % smaller", "§4.1", _MAIN + " with steady-state responses",
+                 PAPER_LZF_PCT, "%"),
+    **{f"004.ssim_{name}_view": E(f"SSIM of asynchronous against zero-latency frames is {value} on the paper's "
+                                  f"{side} view (Fig. 10)", "§5.4, Fig. 10",
+                                  _MAIN + " with zero-latency quality frames after the cache arrived", value)
+       for name, side, value in (("best", "left", PAPER_SSIM_VIEWS[0]), ("worst", "right", PAPER_SSIM_VIEWS[1]))},
+    "004.psnr_paths": E("PSNR per frame of asynchronous against zero-latency frames along the paths",
+                        "§5.4, Fig. 11", _MAIN),
+    "004.wd_best": E("the interval prediction error is lowest at w_d = 0.65 (best in [0.55, 0.8])", "§5.1, Fig. 8",
+                     _MAIN + " with at least 4 recorded cache-update intervals", PAPER_WD),
+    "004.resolution_invariance": E("bandwidth does not grow with the client's resolution", "§5.2",
+                                   "default-variant runs on Dabrovic Sponza at two or more resolutions (quick preset)",
+                                   1.0, "×"),
+    "004.cycle_flat": E("the request-response cycle time is almost flat up to 24 clients", "§5.3, Fig. 9a",
+                        "runs with two or more client counts (quick preset)", 1.0, "×"),
+    "004.amortisation": E("indirect lighting is amortised: actual r_p(c) + t stays near the ideal t, far below "
+                          "sequential c·t (speed-up)", "§5.3, Fig. 9b-c",
+                          "runs with two or more client counts (quick preset)"),
+    "004.grid_memory_example": E("a typical grid (c = 64, c_l = 4, r = 6, |Q| = 40000) needs about 10 MB", "§3.3",
+                                 "nothing (the bound's arithmetic)", 10.0, "MB"),
+})
 _NO_RUNS = "<p>No stored runs of this kind (run <code>splitbench reproduce --preset quick --methods rail</code>).</p>"
 
 
@@ -131,7 +165,7 @@ def claims(runs, bench) -> tuple[list, dict]:
         n_points = int(main["updates"]["info_points"].iloc[0])
         facts["points"] = n_points
         out.append(verdicts.by_calibration(
-            "004.points_dabrovic", "Dabrovic Sponza's point set has 14.5 k points", "§5",
+            *CLAIMS.head("004.points_dabrovic"),
             "the paper variant's target_points and dart_sources were chosen to give about the paper's count "
             "(the dart count limits it)", paper_value=PAPER_POINTS["Dabrovic Sponza"], suite_value=n_points,
             unit="points", setting=_setting(main), method=METHOD))
@@ -141,15 +175,14 @@ def claims(runs, bench) -> tuple[list, dict]:
         facts["sponza_rates"] = rates
         if rates:
             out.append(verdicts.judge(
-                "004.bandwidth_dabrovic", "Dabrovic Sponza needs 1.159 Mbit/s with camera and lights moving",
-                "§5.2", PAPER_BANDWIDTH["Dabrovic Sponza"], rates["mbps"], "Mbit/s",
+                *CLAIMS.head("004.bandwidth_dabrovic"), PAPER_BANDWIDTH["Dabrovic Sponza"], rates["mbps"], "Mbit/s",
                 verdicts.Tolerance(relative=0.5, why="the paper's light path, point density and server speed are "
                                    "not ours; bytes scale with changed cells in view and with the roundtrip rate"),
                 setting=_setting(main), method=METHOD,
                 note=f"Steady state after the initial full transfer ({rates['full_bytes']:,.0f} B), request to "
                      f"last arrival; roundtrip {rates['roundtrip_hz']:.2f} Hz against the paper's about 6 Hz."))
             out.append(verdicts.judge(
-                "004.roundtrip_hz", "client and server complete a roundtrip at about 6 Hz", "§5.2",
+                *CLAIMS.head("004.roundtrip_hz"),
                 PAPER_ROUNDTRIP_HZ, rates["roundtrip_hz"], "Hz",
                 verdicts.Tolerance(relative=0.34, why="'about 6 Hz'; read as 4-8 Hz"),
                 setting=_setting(main), method=METHOD,
@@ -157,15 +190,14 @@ def claims(runs, bench) -> tuple[list, dict]:
                      "paper's server had 24 cores and a GPU."))
     for scene in ("Tony's Barbershop (Half-Life 2)", "Conference Room", "Crytek Sponza"):
         out.append(verdicts.not_measurable(
-            f"004.bandwidth_{scene.split()[0].lower().strip(chr(39) + 's')}",
-            f"{scene} needs {PAPER_BANDWIDTH[scene]} Mbit/s", "§5.2",
+            *CLAIMS.head(f"004.bandwidth_{_SCENE_ID[scene]}"),
             f"{scene} is not available here (the OpenArena levels stand in for the game map)",
             paper_value=PAPER_BANDWIDTH[scene], unit="Mbit/s", method=METHOD))
     # LZF
     if main is not None and facts.get("sponza_rates"):
         r = facts["sponza_rates"]
         out.append(verdicts.judge(
-            "004.lzf", "LZF makes messages up to 40 % smaller", "§4.1", PAPER_LZF_PCT, r["lzf_saving_max_pct"], "%",
+            *CLAIMS.head("004.lzf"), PAPER_LZF_PCT, r["lzf_saving_max_pct"], "%",
             verdicts.Tolerance(absolute=10.0, why="'up to': the largest saving over the run's responses"),
             setting=_setting(main), method=METHOD,
             note=f"The largest saving over every response (the initial full transfer included); the full transfer "
@@ -176,19 +208,18 @@ def claims(runs, bench) -> tuple[list, dict]:
         f = _cache_frames(main)
         zl = f["zl_ssim"].dropna() if "zl_ssim" in f else pd.Series(dtype=float)
         if len(zl):
-            for k, (name, value, pick) in enumerate((("best", PAPER_SSIM_VIEWS[0], zl.max()),
-                                                     ("worst", PAPER_SSIM_VIEWS[1], zl.min()))):
+            for name, value, pick in (("best", PAPER_SSIM_VIEWS[0], zl.max()),
+                                      ("worst", PAPER_SSIM_VIEWS[1], zl.min())):
                 out.append(verdicts.judge(
-                    f"004.ssim_{name}_view", f"SSIM of asynchronous against zero-latency frames is "
-                    f"{value} on the paper's {'left' if k == 0 else 'right'} view (Fig. 10)", "§5.4, Fig. 10",
+                    *CLAIMS.head(f"004.ssim_{name}_view"),
                     value, float(pick), "", verdicts.Tolerance(absolute=0.05, why="the paper's views are two "
                                                                 "picked frames; ours are the run's quality frames"),
                     setting=_setting(main), method=METHOD,
                     note=f"The suite's {name} of {len(zl)} quality frames after the cache arrived "
                          f"(mean {zl.mean():.4f})."))
         out.append(verdicts.not_measurable(
-            "004.psnr_paths", "PSNR per frame of asynchronous against zero-latency frames along the paths",
-            "§5.4, Fig. 11", "the paper plots PSNR without numbers; the suite's per-frame PSNR is plotted below",
+            *CLAIMS.head("004.psnr_paths"),
+            "the paper plots PSNR without numbers; the suite's per-frame PSNR is plotted below",
             method=METHOD))
     # w_d
     if main is not None:
@@ -200,9 +231,8 @@ def claims(runs, bench) -> tuple[list, dict]:
             best = min(sweep, key=lambda w: sweep[w]["mean_abs_ms"])
             facts["wd_sweep"] = sweep
             out.append(verdicts.judge(
-                "004.wd_best", "the interval prediction error is lowest at w_d = 0.65 (best in [0.55, 0.8])",
-                "§5.1, Fig. 8", PAPER_WD, best, "", verdicts.Tolerance(absolute=0.15, why="the paper's range "
-                                                                     "[0.55, 0.8] of good weights"),
+                *CLAIMS.head("004.wd_best"), PAPER_WD, best, "",
+                verdicts.Tolerance(absolute=0.15, why="the paper's range [0.55, 0.8] of good weights"),
                 setting=_setting(main), method=METHOD,
                 note=f"§5.1's experiment on this run's {len(taus)} recorded cache-update intervals (repeated to "
                      "100), modulated by eq. 7 with s in {16, 32, 64}; mean absolute error of ΔT_n − τ_n per w_d "
@@ -216,7 +246,7 @@ def claims(runs, bench) -> tuple[list, dict]:
     if len(rates) >= 2:
         lo, hi = rates[0], rates[-1]
         out.append(verdicts.judge(
-            "004.resolution_invariance", "bandwidth does not grow with the client's resolution", "§5.2",
+            *CLAIMS.head("004.resolution_invariance"),
             1.0, hi[1] / lo[1], "×", verdicts.Tolerance(absolute=0.2, why="request timing follows the client's "
                                                        "frame rate, which changes with resolution"),
             setting={**_setting(res_runs[-1]), "resolution": f"{lo[0]} → {hi[0]}"}, method=METHOD,
@@ -229,7 +259,7 @@ def claims(runs, bench) -> tuple[list, dict]:
         base = sweep.iloc[0]
         top = sweep.iloc[-1]
         out.append(verdicts.judge(
-            "004.cycle_flat", "the request-response cycle time is almost flat up to 24 clients", "§5.3, Fig. 9a",
+            *CLAIMS.head("004.cycle_flat"),
             1.0, float(top["cycle_ms"] / base["cycle_ms"]), "×",
             verdicts.Tolerance(absolute=0.25, why="'almost negligible' read as within 25 %"),
             setting={**_setting(sweep.attrs["runs"][-1]), "clients": f"{int(base['clients'])} → {int(top['clients'])}"},
@@ -237,16 +267,15 @@ def claims(runs, bench) -> tuple[list, dict]:
                                 "one client: " + ", ".join(f"{int(c)}: {v:.0f} ms" for c, v in
                                                             zip(sweep["clients"], sweep["cycle_ms"])) + "."))
         out.append(verdicts.not_measurable(
-            "004.amortisation", "indirect lighting is amortised: actual r_p(c) + t stays near the ideal t, far below "
-            "sequential c·t (speed-up)", "§5.3, Fig. 9b-c", "the paper plots Fig. 9b-c without numbers; the "
+            *CLAIMS.head("004.amortisation"), "the paper plots Fig. 9b-c without numbers; the "
             "suite's t, r_p(c) + t, c·t and speed-up per client count are in the clients table", method=METHOD))
     # grid memory bound
     out.append(verdicts.by_construction(
-        "004.grid_memory_example", "a typical grid (c = 64, c_l = 4, r = 6, |Q| = 40000) needs about 10 MB", "§3.3",
+        *CLAIMS.head("004.grid_memory_example"),
         "the bound |Q|(8(2r/c_l)³ + 23) + 4c³ gives 40000 · (8 · 27 + 23) + 4 · 64³ = 10,608,576 B; the measured "
         "bound and actual of each run's G are in the memory table", paper_value=10.0, suite_value=10.608576,
         unit="MB", method=METHOD))
-    return out, facts
+    return CLAIMS.complete(out), facts
 
 
 def main_run(runs):

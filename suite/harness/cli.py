@@ -469,8 +469,8 @@ def cmd_reproduce(args) -> int:
     for problem in problems:
         print(f"{PROG}: warning: {problem}", file=sys.stderr)
     for scene in record.get("skipped_scenes", []):
-        print(f"{PROG}: note: scene '{scene}' is not available on this machine; its {args.preset} cells are "
-              "skipped (recorded in the report)", file=sys.stderr)
+        print(f"{PROG}: note: scene '{scene}' is not available on this machine; its {args.preset} runs are "
+              "skipped (recorded in the report; docs/scenes.md says where its data goes)", file=sys.stderr)
     # Which scenes this machine has (the report marks those it lacks) is recorded beside the runs.
     from suite import fileio
 

@@ -23,8 +23,9 @@ defined in ``suite/harness/compare.toml`` (:data:`COMPARE_FILE`): its cells (sce
 settings (resolution, frames, quality poses, reference spp, backend). A method adds only its
 ``[presets.compare]`` table: ``variants`` (default ``["default"]``), optionally ``set`` (parameter overrides),
 ``backend`` and ``scenes`` (the matrix scenes it can render). A method with a ``[presets.compare-full]`` table
-uses it for ``compare-full``. Scenes that are not available on the machine are skipped and recorded
-(:func:`expand` returns them; ``reproduce`` stores the record as ``<results>/presets/<preset>.json``).
+uses it for ``compare-full``. Scenes that are not available on the machine are skipped and recorded, in every
+preset but ``smoke`` (:func:`expand` returns them; ``reproduce`` prints a note for each and stores the record as
+``<results>/presets/<preset>.json``).
 """
 from __future__ import annotations
 
@@ -149,8 +150,8 @@ def expand(preset: str, methods: str | list | None = None, matrix_file=None) -> 
     specs = _selected(methods)
     if preset in registry.SHARED_PRESETS:
         return _expand_shared(preset, specs, matrix_file)
-    out, problems = _configs(preset, specs)
-    return out, problems, {"preset": preset, "methods": sorted(specs), "runs": len(out)}
+    out, problems, skipped = _configs(preset, specs)
+    return out, problems, {"preset": preset, "methods": sorted(specs), "skipped_scenes": skipped, "runs": len(out)}
 
 
 def _selected(methods) -> dict:
@@ -194,8 +195,12 @@ def _expand_shared(preset: str, specs: dict, matrix_file) -> tuple[list[dict], l
     return out, problems, record
 
 
-def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str]]:
-    out, problems = [], []
+def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str], list[str]]:
+    """(run configs, problems, skipped scenes). Points on scenes that are not available on the machine are skipped
+    and their scenes returned (as the shared matrix does), except in ``smoke``, whose scenes the set-up installs:
+    there a missing scene fails its run, so a broken set-up shows."""
+    out, problems, skipped = [], [], []
+    available = {}
     for name, spec in specs.items():
         points = preset_points(spec, preset)
         if not points and preset == "smoke":
@@ -204,6 +209,14 @@ def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str]]:
             problems.append(f"method '{name}' has no [presets.{preset}] table; not run")
             continue
         for point in points:
+            scene = point.get("scene")
+            if preset != "smoke" and isinstance(scene, str):
+                if scene not in available:
+                    available[scene] = scene_available(scene)
+                if not available[scene]:
+                    if scene not in skipped:
+                        skipped.append(scene)
+                    continue
             point = dict(point)
             set_values = point.pop("set", {})
             point.pop("method")
@@ -212,7 +225,7 @@ def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str]]:
                 out.append(runner.make_config(name, set_values=set_values, **point))
             except UserError as exc:
                 problems.append(f"method '{name}' preset '{preset}' point {point}: {exc}")
-    return out, problems
+    return out, problems, skipped
 
 
 def preset_points(spec: registry.MethodSpec, preset: str) -> list[dict]:

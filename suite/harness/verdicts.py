@@ -240,6 +240,45 @@ def not_measurable(id: str, statement: str, source: str, reason: str, *, paper_v
                  explanation=_sentence(f"{_clause(reason)}.", note))
 
 
+@dataclass(frozen=True)
+class Expected:
+    """A claim a method's report checks when its results hold what the check needs: the claim (``statement``,
+    ``source``, ``paper_value`` in ``unit``) and ``needs``, what the check reads (which runs or bench figures)."""
+
+    statement: str
+    source: str
+    needs: str
+    paper_value: float | None = None
+    unit: str = ""
+
+
+class ClaimList:
+    """The claims of one method's report, declared up front (id → :class:`Expected`), so that a claim whose runs
+    are missing from the results (a scene not on this machine, a preset not run) stays in the table as
+    :data:`NOT_MEASURABLE`, saying what it needs, instead of vanishing.
+
+    ``head(id)`` gives ``(id, statement, source)``, the first arguments of :func:`judge` and its siblings, so the
+    statement is written once. :meth:`complete` adds the missing claims and refuses a claim that is not declared."""
+
+    def __init__(self, method: str, expected: dict):
+        self.method, self.expected = method, dict(expected)
+
+    def head(self, id: str) -> tuple:
+        e = self.expected[id]
+        return id, e.statement, e.source
+
+    def complete(self, claims: list) -> list:
+        """``claims`` plus one :data:`NOT_MEASURABLE` claim for every declared id that none of them has."""
+        unknown = sorted({c.id for c in claims} - set(self.expected))
+        if unknown:
+            raise ValueError(f"method '{self.method}': claim '{unknown[0]}' is not declared in its ClaimList")
+        have = {c.id for c in claims}
+        return list(claims) + [
+            not_measurable(id, e.statement, e.source, f"not in these results: {_clause(e.needs)}",
+                           paper_value=e.paper_value, unit=e.unit, method=self.method)
+            for id, e in self.expected.items() if id not in have]
+
+
 def claims_table(claims):
     """A pandas DataFrame with one :meth:`Claim.as_row` per claim (columns :data:`ROW_COLUMNS`)."""
     import pandas as pd

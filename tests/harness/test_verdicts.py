@@ -115,3 +115,18 @@ def test08_claims_survive_json_and_gather_into_one_table():
                                 "protocol tcp, variant paper")
     assert first["tolerance"] == "±5 percentage points (absolute): rounding" and first["verdict"] == "reproduces"
     assert list(table["verdict"]) == ["reproduces", "consistent by calibration", "not measurable here"]
+
+
+def test09_a_declared_claim_without_its_runs_stays_in_the_table_as_not_measurable():
+    claims = verdicts.ClaimList("m", {
+        "9.a": verdicts.Expected("a is 1", "§1", "the run on scene a", 1.0, "ms"),
+        "9.b": verdicts.Expected("b is 2", "§2", "the run on scene b (quick preset)", 2.0)})
+    measured = verdicts.judge(*claims.head("9.a"), 1.0, 1.05, "ms", verdicts.Tolerance(relative=0.1), method="m")
+    done = claims.complete([measured])
+    assert [c.id for c in done] == ["9.a", "9.b"] and done[0] is measured
+    b = done[1]
+    assert (b.kind, b.statement, b.source, b.paper_value, b.suite_value, b.method) == (
+        verdicts.NOT_MEASURABLE, "b is 2", "§2", 2.0, None, "m")
+    assert b.explanation == "not in these results: the run on scene b (quick preset)."
+    with pytest.raises(ValueError, match="claim '9.c' is not declared"):
+        claims.complete([verdicts.not_measurable("9.c", "c", "§3", "no data", method="m")])

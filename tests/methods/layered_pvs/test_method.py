@@ -1,6 +1,8 @@
 """The layered-PVS pipeline end to end, server update -> bytes -> client frame, on a small living_room: a static
 camera reproduces the server's view, corrupt or truncated updates are rejected without a crash, the hard cases of
 the issue behave as documented, and reruns give identical bytes."""
+import json
+
 import numpy as np
 import pytest
 
@@ -192,6 +194,11 @@ def test10_a_run_whose_updates_arrive_corrupt_completes_and_counts_rejections(tm
     html = report.section(f.assign(run=run_dir.name, method="layered_pvs", resolution="32x18",
                                    scene="living_room"), [run_dir], out_dir=tmp_path / "report")
     assert "002.quadtree_vs_rle" in html and "002.dssim_static" in html
+    # Every declared claim has a row: those whose runs are not in the results say what they need.
+    stored = json.loads((tmp_path / "report" / "layered_pvs" / "claims.json").read_text())
+    assert sorted(c["id"] for c in stored) == sorted(report.CLAIMS.expected)
+    latency = next(c for c in stored if c["id"] == "002.latency")
+    assert latency["kind"] == "not measurable here" and "not in these results" in latency["explanation"]
 
 
 def test11_the_pvs_is_the_union_of_its_views_and_a_repeated_view_is_traced_once(world):
