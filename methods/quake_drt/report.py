@@ -147,6 +147,72 @@ def _gt_value(df: pd.DataFrame, col: str) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
+E = verdicts.Expected
+CLAIMS = verdicts.ClaimList(METHOD, {
+    "001.culling_speedup": E("Light culling more than doubles the frame rate when every light is shaded without a "
+                             "denoiser",
+                             "§7.3, Fig. 7.9",
+                             "the no_culling and all_lights runs of one map and path (quick preset)",
+                             PAPER_CULLING_SPEEDUP, "x"),
+    "001.culling_exact": E("Culled lights do not contribute to the culled surfaces (culling keeps the image)",
+                           "§4.3, §7.3",
+                           "a run with the culling audit on (quick preset)", 0.0, "%"),
+    "001.spp4_cost": E("Four traditional samples per pixel cost four frames",
+                       "§7.3.1, Fig. 7.11",
+                       "the one_light runs with spp 1 and spp 4 (quick preset)", PAPER_SPP4_COST, "x"),
+    "001.light_samples_cost": E("Going from 1 to 4 light samples per pixel costs about 3x the frame time (450 to 150 "
+                                "FPS)",
+                                "§7.3.1, Fig. 7.11",
+                                "the one_light runs with 1 and 4 random lights (quick preset)",
+                                PAPER_LIGHTS4_COST, "x"),
+    "001.light_vs_traditional": E("4 light samples cost less than 4 traditional samples per pixel",
+                                  "§7.3.1, Fig. 7.11",
+                                  "the one_light runs with 1 and 4 random lights and with 4 spp (quick preset)",
+                                  0.0, "x"),
+    "001.samples_raise_quality": E("Without a denoiser, SSIM to the ground truth grows with the light samples per "
+                                   "pixel",
+                                   "§7.3.1, Fig. 7.11 (right)",
+                                   "the one_light runs with 1 and 16 random lights, with ground-truth SSIM (quick "
+                                   "preset)", 0.0),
+    "001.denoised_samples_equal": E("With the denoiser, the light-sample count makes no visible difference",
+                                    "§7.3.1, Fig. 7.11 (left)",
+                                    "the default runs with 1 and 4 random lights, with ground-truth SSIM (quick "
+                                    "preset)", 0.0),
+    "001.all_lights_taa_vs_denoiser": E("Every light + TAA comes very close to (or beats) one light + the denoiser",
+                                        "§7.2 Fig. 7.2, §7.3.1",
+                                        "the all_lights_taa and denoiser_no_taa runs, with ground-truth SSIM (quick "
+                                        "preset)", -QUALITY_CLOSE),
+    "001.taa_improves_denoiser": E("TAA improves the denoised image further",
+                                   "§7.3.1",
+                                   "the default and denoiser_no_taa runs, with ground-truth SSIM (quick preset)", 0.0),
+    "001.culling_helps_denoiser": E("Culling gives the denoiser a better one-light input (a better result)",
+                                    "§7.2, Fig. 7.4",
+                                    "the denoiser_no_taa and denoised_no_culling runs, with ground-truth SSIM (quick "
+                                    "preset)", 0.0),
+    "001.far_shadows_lose_detail": E("The denoiser loses more shadow detail far from the camera than near it",
+                                     "§7.5, Fig. 7.14",
+                                     "the denoiser_no_taa run with the near/far detail measure (quick preset)", 0.0),
+    "001.frame_time_spikes": E("Every light without a denoiser makes the cost vary along a path; one light + "
+                               "denoiser keeps it stable",
+                               "§7.5, Fig. 7.13",
+                               "the all_lights and default runs along a path of at least 10 frames (quick preset)",
+                               1.0, "x"),
+    "001.one_light_denoiser_faster": E("One light + denoiser renders faster than every light without it",
+                                       "§7.3, Fig. 7.7",
+                                       "the all_lights and default runs along a path of at least 10 frames (quick "
+                                       "preset)", 1.0, "x"),
+    "001.denoiser_linear": E("The denoiser's cost grows with the pixel count",
+                             "§7.3, Fig. 7.8",
+                             "the A-SVGF part of the stored bench (splitbench bench quake_drt)"),
+    "001.denoiser_2ms": E("A-SVGF takes about 2 ms per frame at 1080p",
+                          "§3.1, §7.3, Fig. 7.8",
+                          "nothing (a GPU time)", PAPER_DENOISER_MS_1080P, "ms"),
+    "001.fps_1440p": E("With the denoiser every tested resolution up to 1440p stays above 60 FPS; without it 1440p "
+                       "drops below",
+                       "§7.3, Fig. 7.7",
+                       "nothing (a GPU frame rate)"),
+})
+
 _NO_RUNS = ("<p><em>No stored runs for this part. <code>splitbench reproduce --preset quick</code> produces "
             "them.</em></p>")
 _NO_BENCH = ("<p><em>No stored benchmark. <code>splitbench bench quake_drt</code> stores it under "
@@ -190,8 +256,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
         wall = _ratio(_mean(full, "frame_ms"), _mean(culled, "frame_ms"))
         rays = _ratio(_mean(full, "info_shadow_rays"), _mean(culled, "info_shadow_rays"))
         out.append(at_least(
-            "001.culling_speedup", "Light culling more than doubles the frame rate when every light is shaded "
-            "without a denoiser", "§7.3, Fig. 7.9", PAPER_CULLING_SPEEDUP, speedup, "x",
+            *CLAIMS.head("001.culling_speedup"), PAPER_CULLING_SPEEDUP, speedup, "x",
             "a lower bound: 'more than double the fps'", st,
             f"Frame cost (work model) without culling over with (variants no_culling / all_lights, frames 1 on); "
             f"shadow rays fall by {rays:.2f}x, measured wall time by {wall:.2f}x. The speed-up is the map's: it grows "
@@ -204,8 +269,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
         missed = int(pd.to_numeric(audited["info_audit_missed"], errors="coerce").sum())
         pairs = int(pd.to_numeric(audited["info_audit_pairs"], errors="coerce").sum())
         out.append(verdicts.judge(
-            "001.culling_exact", "Culled lights do not contribute to the culled surfaces (culling keeps the image)",
-            "§4.3, §7.3", 0.0, 100.0 * energy, "%",
+            *CLAIMS.head("001.culling_exact"), 0.0, 100.0 * energy, "%",
             Tolerance(absolute=0.1, why="0.1 % of a point's direct light: below the noise of any one frame"),
             setting=st, method=METHOD,
             note=f"Audit over {pairs:,} (point, culled light) pairs of {audited['run'].nunique()} runs: "
@@ -219,7 +283,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
     if _finite(base) and not s4.empty:
         r_spp = _mean(s4, "work_ms") / base
         out.append(verdicts.by_construction(
-            "001.spp4_cost", "Four traditional samples per pixel cost four frames", "§7.3.1, Fig. 7.11",
+            *CLAIMS.head("001.spp4_cost"),
             "spp = 4 renders the primary, secondary and direct stages four times (only the composition is shared)",
             paper_value=PAPER_SPP4_COST, suite_value=r_spp, unit="x", setting=_setting(scene, backend, res,
                                                                                         "one_light"),
@@ -228,8 +292,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
     if _finite(base) and not k4.empty:
         r_k4 = _mean(k4, "work_ms") / base
         out.append(verdicts.judge(
-            "001.light_samples_cost", "Going from 1 to 4 light samples per pixel costs about 3x the frame time "
-            "(450 to 150 FPS)", "§7.3.1, Fig. 7.11", PAPER_LIGHTS4_COST, r_k4, "x",
+            *CLAIMS.head("001.light_samples_cost"), PAPER_LIGHTS4_COST, r_k4, "x",
             Tolerance(relative=0.5, why="the thesis's own numbers disagree (450 -> 150 FPS is 3x, 4 -> 18 ms is "
                                         "4.5x) and the share of shadow rays in a frame is a property of the GPU"),
             setting=_setting(scene, backend, res, "one_light"), method=METHOD,
@@ -239,8 +302,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
                  "outweigh threefold."))
         if not s4.empty:
             out.append(at_least(
-                "001.light_vs_traditional", "4 light samples cost less than 4 traditional samples per pixel",
-                "§7.3.1, Fig. 7.11", 0.0, _mean(s4, "work_ms") / base - r_k4, "x",
+                *CLAIMS.head("001.light_vs_traditional"), 0.0, _mean(s4, "work_ms") / base - r_k4, "x",
                 "an ordering: the spp-4 frame-time ratio minus the k-4 one must be positive",
                 _setting(scene, backend, res, "one_light"),
                 f"Frame-cost ratios (work model) to 1 light, 1 spp: k = 4 {r_k4:.2f}x, spp = 4 "
@@ -258,15 +320,13 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
         ssim[key] = _gt_value(_runs(df, variant, **params), "gt_ssim")
     if _finite(ssim["one"]) and _finite(ssim["k16"]):
         out.append(at_least(
-            "001.samples_raise_quality", "Without a denoiser, SSIM to the ground truth grows with the light "
-            "samples per pixel", "§7.3.1, Fig. 7.11 (right)", 0.0, ssim["k16"] - ssim["one"], "",
+            *CLAIMS.head("001.samples_raise_quality"), 0.0, ssim["k16"] - ssim["one"], "",
             "an ordering: SSIM(16 lights) - SSIM(1 light) must be positive", _setting(scene, backend, res,
                                                                                       "one_light"),
             f"SSIM 1 light {ssim['one']:.3f}, 16 lights {ssim['k16']:.3f}."))
     if _finite(ssim["denoised_taa"]) and _finite(ssim["denoised_k4"]):
         out.append(verdicts.judge(
-            "001.denoised_samples_equal", "With the denoiser, the light-sample count makes no visible difference",
-            "§7.3.1, Fig. 7.11 (left)", 0.0, ssim["denoised_k4"] - ssim["denoised_taa"], "",
+            *CLAIMS.head("001.denoised_samples_equal"), 0.0, ssim["denoised_k4"] - ssim["denoised_taa"], "",
             Tolerance(absolute=QUALITY_CLOSE, why="'the result is the same for all the different sample counts', "
                                                   "read as SSIM within 0.02"),
             setting=_setting(scene, backend, res, "default"), method=METHOD,
@@ -274,21 +334,19 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
                  f"{ssim['denoised_k4']:.3f}."))
     if _finite(ssim["all_taa"]) and _finite(ssim["denoised"]):
         out.append(at_least(
-            "001.all_lights_taa_vs_denoiser", "Every light + TAA comes very close to (or beats) one light + the "
-            "denoiser", "§7.2 Fig. 7.2, §7.3.1", -QUALITY_CLOSE, ssim["all_taa"] - ssim["denoised"], "",
+            *CLAIMS.head("001.all_lights_taa_vs_denoiser"), -QUALITY_CLOSE, ssim["all_taa"] - ssim["denoised"], "",
             "'very close or even better': SSIM no more than 0.02 below", _setting(scene, backend, res),
             f"SSIM all lights + TAA {ssim['all_taa']:.3f}, one light + A-SVGF {ssim['denoised']:.3f}."))
     if _finite(ssim["denoised_taa"]) and _finite(ssim["denoised"]):
         out.append(at_least(
-            "001.taa_improves_denoiser", "TAA improves the denoised image further", "§7.3.1",
+            *CLAIMS.head("001.taa_improves_denoiser"),
             0.0, ssim["denoised_taa"] - ssim["denoised"], "", "an ordering: SSIM with TAA minus without",
             _setting(scene, backend, res), f"SSIM A-SVGF {ssim['denoised']:.3f}, A-SVGF + TAA "
                                            f"{ssim['denoised_taa']:.3f} (TAA's 0.1 weight also lags: frame 7 of a "
                                            "walking camera)."))
     if _finite(ssim["denoised"]) and _finite(ssim["denoised_nocull"]):
         out.append(at_least(
-            "001.culling_helps_denoiser", "Culling gives the denoiser a better one-light input (a better result)",
-            "§7.2, Fig. 7.4", 0.0, ssim["denoised"] - ssim["denoised_nocull"], "",
+            *CLAIMS.head("001.culling_helps_denoiser"), 0.0, ssim["denoised"] - ssim["denoised_nocull"], "",
             "an ordering: SSIM with culling minus without, one light + A-SVGF, no TAA",
             _setting(scene, backend, res), f"SSIM with culling {ssim['denoised']:.3f}, without "
                                            f"{ssim['denoised_nocull']:.3f}."))
@@ -296,8 +354,7 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
     near, far = _gt_value(den, "detail_near"), _gt_value(den, "detail_far")
     if _finite(near) and _finite(far):
         out.append(at_least(
-            "001.far_shadows_lose_detail", "The denoiser loses more shadow detail far from the camera than near it",
-            "§7.5, Fig. 7.14", 0.0, near - far, "", "an ordering: kept detail near minus far",
+            *CLAIMS.head("001.far_shadows_lose_detail"), 0.0, near - far, "", "an ordering: kept detail near minus far",
             _setting(scene, backend, res, "denoiser_no_taa"),
             f"Mid-scale luminance contrast (3x3 minus 9x9 box blur) of the denoised image over the ground truth's: "
             f"nearer half of the pixels {near:.2f}, farther half {far:.2f}."))
@@ -317,16 +374,14 @@ def claims_for(scene, backend, res, df: pd.DataFrame, bench: dict | None) -> lis
         wms = {name: pd.to_numeric(d[d["frame"] > 0]["work_ms"], errors="coerce") for name, d in
                (("all", path_all), ("one", path_one))}
         out.append(at_least(
-            "001.frame_time_spikes", "Every light without a denoiser makes the cost vary along a path; one light + "
-            "denoiser keeps it stable", "§7.5, Fig. 7.13", 1.0, _ratio(cv["all"], cv["one"]), "x",
+            *CLAIMS.head("001.frame_time_spikes"), 1.0, _ratio(cv["all"], cv["one"]), "x",
             "an ordering: the variation (std / mean) of shadow rays per frame, all lights over one light",
             _setting(scene, backend, res),
             f"Over {len(path_all)} frames of the camera path: shadow rays std/mean {cv['all']:.3f} (all lights) vs "
             f"{cv['one']:.3f} (one light); frame time std/mean {fms['all'].std() / fms['all'].mean():.3f} vs "
             f"{fms['one'].std() / fms['one'].mean():.3f} (wall time, noisier)."))
         out.append(at_least(
-            "001.one_light_denoiser_faster", "One light + denoiser renders faster than every light without it",
-            "§7.3, Fig. 7.7", 1.0, _ratio(wms["all"].mean(), wms["one"].mean()), "x",
+            *CLAIMS.head("001.one_light_denoiser_faster"), 1.0, _ratio(wms["all"].mean(), wms["one"].mean()), "x",
             "an ordering: frame cost all lights over one light + A-SVGF + TAA", _setting(scene, backend, res),
             f"Frame cost under the work model (rays, pixels and filter taps) {wms['all'].mean():.0f} vs "
             f"{wms['one'].mean():.0f} ms; measured wall time {fms['all'].mean():.0f} vs {fms['one'].mean():.0f} ms on "
@@ -340,7 +395,7 @@ def general_claims(bench: dict | None) -> list[Claim]:
     if a and a.get("fit"):
         st = {"scene": a.get("scene", NOT_RECORDED), "backend": a.get("backend", NOT_RECORDED)}
         out.append(verdicts.by_construction(
-            "001.denoiser_linear", "The denoiser's cost grows with the pixel count", "§7.3, Fig. 7.8",
+            *CLAIMS.head("001.denoiser_linear"),
             "every A-SVGF pass is a fixed number of taps per pixel (or per 3x3 cell)", suite_value=a["fit"]["exponent"],
             setting=st, suite_source="bench", method=METHOD,
             note=f"Bench: ms ∝ pixels^{a['fit']['exponent']:.2f}, {a['fit']['ms_per_mp']:.0f} ms per megapixel "
@@ -349,13 +404,12 @@ def general_claims(bench: dict | None) -> list[Claim]:
     else:
         ms_1080p = None
     out.append(verdicts.not_measurable(
-        "001.denoiser_2ms", "A-SVGF takes about 2 ms per frame at 1080p", "§3.1, §7.3, Fig. 7.8",
+        *CLAIMS.head("001.denoiser_2ms"),
         f"GPU time on an {PAPER_GPU}; the suite's denoiser runs on the CPU (numpy and numba)"
         + (f" (extrapolated from the bench: {ms_1080p:,.0f} ms at 1080p)" if ms_1080p else ""),
         paper_value=PAPER_DENOISER_MS_1080P, unit="ms", method=METHOD))
     out.append(verdicts.not_measurable(
-        "001.fps_1440p", "With the denoiser every tested resolution up to 1440p stays above 60 FPS; without it 1440p "
-        "drops below", "§7.3, Fig. 7.7", f"absolute frame rates of an {PAPER_GPU} with RT cores; the suite reports "
+        *CLAIMS.head("001.fps_1440p"), f"absolute frame rates of an {PAPER_GPU} with RT cores; the suite reports "
         "CPU frame times and hardware-independent work (rays, taps) instead", method=METHOD))
     return out
 
@@ -506,7 +560,7 @@ def claims(frames: pd.DataFrame, bench: dict | None = None) -> list[Claim]:
     for scene, backend, res, df in settings(frames):
         out += claims_for(scene, backend, res, df, bench)
     out += general_claims(bench)
-    return out
+    return CLAIMS.complete(out)
 
 
 def section(results_df: pd.DataFrame, run_dirs, out_dir=None, results_root=None) -> str:

@@ -114,9 +114,13 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
     assert (out / "quake_drt" / "bench_asvgf.csv").is_file()
 
 
-def test04_no_runs_no_bench_still_builds():
-    html = report.section(pd.DataFrame(), [])
+def test04_no_runs_no_bench_still_builds_and_every_claim_keeps_its_row(tmp_path):
+    html = report.section(pd.DataFrame(), [], out_dir=tmp_path)
     assert "No stored runs" in html and "No stored benchmark" in html
+    claims = {c["id"]: c for c in json.loads((tmp_path / "quake_drt" / "claims.json").read_text())}
+    assert set(claims) == set(report.CLAIMS.expected)
+    assert all(c["kind"] == verdicts.NOT_MEASURABLE for c in claims.values())
+    assert "not in these results: the no_culling and all_lights runs" in claims["001.culling_speedup"]["explanation"]
 
 
 def test05_streamed_runs_get_their_own_table_and_stay_out_of_the_thesis_claims(stored, tmp_path):
