@@ -260,13 +260,14 @@ def bench_figures(scene, tracer, results_root, frames: int = 61, resolution=(160
 
 
 def run(args) -> dict:
-    from suite.core.scene import list_scenes, load
+    from suite.core.scene import load
     from suite.core.trace import make
 
     scene_name = args.scene
     if scene_name == "auto":
-        desc = list_scenes().get("dabrovic_sponza", "unavailable")
-        scene_name = "living_room" if str(desc).startswith("unavailable") else "dabrovic_sponza"
+        from suite.harness.presets import scene_available
+
+        scene_name = "dabrovic_sponza" if scene_available("dabrovic_sponza") else "living_room"
     scene = load(scene_name)
     tracer = make(args.backend, scene)
     targets = [int(x) for x in args.points.split(",")]

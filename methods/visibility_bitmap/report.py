@@ -66,6 +66,27 @@ PAPER_SCENE = "living_room"
 # §5.2: "a single hop home router"; netsim's lan-home profile is calibrated on Fig. 10's network pass.
 PAPER_NET_PROFILE = "lan-home"
 
+_PAPER_RUNS = (f"the paper variant's runs on {PAPER_SCENE} at {PAPER_RESOLUTION[0]}x{PAPER_RESOLUTION[1]} over TCP on "
+               f"the {PAPER_NET_PROFILE} specs (quick preset)")
+E = verdicts.Expected
+CLAIMS = verdicts.ClaimList(METHOD, {
+    "000.frame_time": E(f"the frame takes ~{PAPER_FRAME_MS:g} ms (~{PAPER_FPS:g} fps)", "§5.2", _PAPER_RUNS,
+                        PAPER_FRAME_MS, "ms"),
+    "000.network_ms": E(f"the network pass takes {PAPER_NETWORK_MS} ms of the frame", "§5.2, Fig. 10", _PAPER_RUNS,
+                        PAPER_NETWORK_MS, "ms"),
+    "000.network_share": E(f"the network pass is {PAPER_NETWORK_SHARE_PCT:g} % of the frame, the main bottleneck",
+                           "§5.2, Fig. 10", _PAPER_RUNS, PAPER_NETWORK_SHARE_PCT, "%"),
+    **{f"000.{key}_ms": E(f"{label} memory transfer takes {PAPER_MS[key]} ms", "Fig. 10, §4.4.3",
+                          _PAPER_RUNS + " with the modelled transfer's rate in their config", PAPER_MS[key], "ms")
+       for key, label in (("gpu_to_cpu", "the server's GPU-to-CPU"), ("cpu_to_gpu", "the client's CPU-to-GPU"))},
+    "000.raw_bitmap_bytes": E(f"the raw visibility bitmap is {PAPER_RAW_MB:g} MB per {PAPER_RESOLUTION[0]}x"
+                              f"{PAPER_RESOLUTION[1]} frame ({PAPER_RESOLUTION[0]}·{PAPER_RESOLUTION[1]}·"
+                              f"{PAPER_BYTES_PER_PIXEL} B)", "§5.2, §3.2", _PAPER_RUNS, PAPER_RAW_BYTES, "B"),
+    "000.lzo_slowdown": E(f"LZO compression makes the frame ~{PAPER_LZO_SLOWDOWN_PCT:g} % slower", "§4.5.3",
+                          "the paper and paper_lzo variants' runs on one network of " + _PAPER_RUNS,
+                          PAPER_LZO_SLOWDOWN_PCT, "%"),
+})
+
 # ---------------------------------------------------------------------------------------------- tolerances
 
 NETWORK_SHARE_TOLERANCE = Tolerance(
@@ -392,14 +413,12 @@ def _network_claims(df: pd.DataFrame, backend: str, net: str) -> list[verdicts.C
                     f"frames leaves the connection idle for longer than the retransmission timeout (at least "
                     f"{min_rto:g} ms), so every bitmap starts again from the initial window"
                     + (f" of {iw:g} segments." if iw is not None else "."))
-    statement = f"the network pass takes {PAPER_NETWORK_MS} ms of the frame"
-    source = "§5.2, Fig. 10"
     if calibrated:
-        ms_claim = verdicts.by_calibration("000.network_ms", statement, source, calibration,
+        ms_claim = verdicts.by_calibration(*CLAIMS.head("000.network_ms"), calibration,
                                            paper_value=PAPER_NETWORK_MS, suite_value=net_ms, unit="ms",
                                            setting=setting, method=METHOD)
     else:
-        ms_claim = verdicts.judge("000.network_ms", statement, source, PAPER_NETWORK_MS, net_ms, "ms",
+        ms_claim = verdicts.judge(*CLAIMS.head("000.network_ms"), PAPER_NETWORK_MS, net_ms, "ms",
                                   TIMING_TOLERANCE, setting=setting, method=METHOD, note=ssr_note)
 
     share = 100 * net_ms / (PAPER_COMPUTE_MS + net_ms)
@@ -409,15 +428,14 @@ def _network_claims(df: pd.DataFrame, backend: str, net: str) -> list[verdicts.C
             f"({PAPER_COMPUTE_MS:.2f} ms). In our own {frame_ms:,.0f} ms frame on the {backend} backend the network "
             f"is {own_share:.1f} %: our server G-buffer + visibility take {server_ms:,.0f} ms, "
             f"{server_ms / PAPER_SERVER_MS:,.0f}× the paper's GPU ({PAPER_SERVER_MS:.2f} ms).")
-    statement = f"the network pass is {PAPER_NETWORK_SHARE_PCT:g} % of the frame, the main bottleneck"
     if calibrated:
         share_claim = verdicts.by_calibration(
-            "000.network_share", statement, source,
+            *CLAIMS.head("000.network_share"),
             f"its network pass comes from {_link_text(st)}, calibrated on the paper's, and the other passes are "
             "the paper's own", paper_value=PAPER_NETWORK_SHARE_PCT, suite_value=share, unit="%", setting=setting,
             method=METHOD, note=note)
     else:
-        share_claim = verdicts.judge("000.network_share", statement, source, PAPER_NETWORK_SHARE_PCT, share, "%",
+        share_claim = verdicts.judge(*CLAIMS.head("000.network_share"), PAPER_NETWORK_SHARE_PCT, share, "%",
                                      NETWORK_SHARE_TOLERANCE, setting=setting, method=METHOD,
                                      note=_sentence(note, ssr_note))
     return [ms_claim, share_claim]
@@ -431,7 +449,7 @@ def _frame_time_claim(df: pd.DataFrame, backend: str, net: str) -> verdicts.Clai
     """§5.2: ~7.7 fps, 130 ms per frame: the paper's GPU, which the suite does not have."""
     frame_ms = _steady(df)["frame_ms"].mean()
     return verdicts.not_measurable(
-        "000.frame_time", f"the frame takes ~{PAPER_FRAME_MS:g} ms (~{PAPER_FPS:g} fps)", "§5.2",
+        *CLAIMS.head("000.frame_time"),
         f"the suite cannot measure it: the paper's frame time is that of its {PAPER_GPU} (DirectX Raytracing); "
         "this suite's compute runs on the "
         f"{backend} backend of this machine (config.json), where the same frame takes {frame_ms:,.0f} ms (run), "
@@ -449,16 +467,15 @@ def _memory_transfer_claims(df: pd.DataFrame, backend: str, net: str) -> list[ve
         if rate is None or not np.isfinite(suite_ms):
             continue
         implied = PAPER_RAW_BYTES / (paper_ms * 1e3)  # MB/s: bytes / 1e6 over ms / 1e3
-        statement = f"{label} memory transfer takes {paper_ms} ms"
         if math.isclose(rate, implied, rel_tol=1e-3):
             out.append(verdicts.by_calibration(
-                f"000.{key}_ms", statement, "Fig. 10, §4.4.3",
+                *CLAIMS.head(f"000.{key}_ms"),
                 f"the transfer is modelled, not measured: {param} = {rate:g} MB/s (config.json) is the rate Fig. 10 "
                 f"implies ({PAPER_RAW_BYTES:,} B in {paper_ms} ms)", paper_value=paper_ms, suite_value=suite_ms,
                 unit="ms", setting=_setting(backend, net), suite_source="run (modelled)", method=METHOD))
         else:
             out.append(verdicts.not_measurable(
-                f"000.{key}_ms", statement, "Fig. 10, §4.4.3",
+                *CLAIMS.head(f"000.{key}_ms"),
                 f"the suite has no GPU memory: the transfer is modelled from bytes and {param} = {rate:g} MB/s "
                 f"(config.json), which is not the paper's rate ({implied:g} MB/s), and gives {suite_ms:.2f} ms",
                 paper_value=paper_ms, unit="ms", setting=_setting(backend, net), method=METHOD))
@@ -470,17 +487,14 @@ def _raw_bytes_claim(df: pd.DataFrame, backend: str, net: str) -> verdicts.Claim
     raw, wire, layout = _col(df, "info_raw_bytes").mean(), _col(df, "info_wire_bytes").mean(), _first(df, "layout")
     if not np.isfinite(raw):
         return None
-    w, h = PAPER_RESOLUTION
-    statement = (f"the raw visibility bitmap is {PAPER_RAW_MB:g} MB per {w}x{h} frame "
-                 f"({w}·{h}·{PAPER_BYTES_PER_PIXEL} B)")
     wire_text = f"; {wire:,.0f} B on the wire with our header and CRCs" if np.isfinite(wire) else ""
     if raw == PAPER_RAW_BYTES and layout == "paper32":
         return verdicts.by_construction(
-            "000.raw_bitmap_bytes", statement, "§5.2, §3.2",
+            *CLAIMS.head("000.raw_bitmap_bytes"),
             f"the paper32 layout stores one 32-bit mask per pixel, W·H·{PAPER_BYTES_PER_PIXEL} bytes; the runs "
             f"store {raw:,.0f} B per frame (info_raw_bytes){wire_text}",
             paper_value=PAPER_RAW_BYTES, suite_value=raw, unit="B", setting=_setting(backend, net), method=METHOD)
-    return verdicts.judge("000.raw_bitmap_bytes", statement, "§5.2, §3.2", PAPER_RAW_BYTES, raw, "B", EXACT_BYTES,
+    return verdicts.judge(*CLAIMS.head("000.raw_bitmap_bytes"), PAPER_RAW_BYTES, raw, "B", EXACT_BYTES,
                           setting=_setting(backend, net), method=METHOD,
                           note=f"The runs' layout is {layout} (config.json){wire_text}.")
 
@@ -510,8 +524,7 @@ def _lzo_claim(raw: pd.DataFrame, lzo: pd.DataFrame, backend: str, net: str) -> 
             f"{f['transfer_lzo_ms']:.1f} ms with LZO, which shrinks these bitmaps {f['ratio']:,.0f}:1 (run). Our "
             f"whole {backend} frame changes by {own:+.1f} % ({f['frame_raw_ms']:,.0f} → {f['frame_lzo_ms']:,.0f} ms"
             f"{spread}).")
-    return verdicts.judge("000.lzo_slowdown", f"LZO compression makes the frame ~{PAPER_LZO_SLOWDOWN_PCT:g} % slower",
-                          "§4.5.3", PAPER_LZO_SLOWDOWN_PCT, pct, "%", LZO_TOLERANCE,
+    return verdicts.judge(*CLAIMS.head("000.lzo_slowdown"), PAPER_LZO_SLOWDOWN_PCT, pct, "%", LZO_TOLERANCE,
                           setting=_setting(backend, net, "paper_lzo vs paper"), method=METHOD, note=note)
 
 
@@ -537,7 +550,7 @@ def claims(frames: pd.DataFrame) -> list[verdicts.Claim]:
             if not lzo[lzo["net"] == net].empty:
                 claim = _lzo_claim(paper[paper["net"] == net], lzo[lzo["net"] == net], backend, net)
                 out += [claim] if claim else []
-    return out
+    return CLAIMS.complete(out)
 
 
 def _claims_part(frames: pd.DataFrame, files: SectionFiles) -> str:
