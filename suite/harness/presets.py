@@ -58,21 +58,13 @@ def configs(preset: str, methods: str | list | None = None) -> tuple[list[dict],
 
 
 def scene_available(name: str) -> bool:
-    """Whether a scene can be loaded on this machine (project scenes on the search path, OpenArena data)."""
+    """False for a listed scene whose data this machine lacks (``splitbench list`` says "unavailable: ..." and how to
+    add it): presets skip its runs and record it. True otherwise, also for a name the list does not know (a file
+    path, a map it does not enumerate, a typo): the run's own scene loading judges that and names the problem."""
     from suite.core.scene import list_scenes
 
     desc = list_scenes().get(name)
-    return desc is not None and not str(desc).startswith("unavailable")
-
-
-def scene_unavailable(name: str) -> bool:
-    """Whether ``name`` is a listed scene whose data this machine lacks (``splitbench list`` says "unavailable: ..."
-    and how to add it). A name the list does not know (a file path, a map the list does not enumerate, a typo) is
-    not: the run's own scene loading judges it and names the problem."""
-    from suite.core.scene import list_scenes
-
-    desc = list_scenes().get(name)
-    return desc is not None and str(desc).startswith("unavailable")
+    return desc is None or not str(desc).startswith("unavailable")
 
 
 def shared_matrix(preset: str, path=None) -> dict:
@@ -207,10 +199,10 @@ def _expand_shared(preset: str, specs: dict, matrix_file) -> tuple[list[dict], l
 
 def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str], list[str]]:
     """(run configs, problems, skipped scenes). Points on listed scenes whose data the machine lacks
-    (:func:`scene_unavailable`) are skipped and their scenes returned, as the shared matrix does, except in
+    (:func:`scene_available`) are skipped and their scenes returned, as the shared matrix does, except in
     ``smoke``, whose scenes the set-up installs: there a missing scene fails its run, so a broken set-up shows."""
     out, problems, skipped = [], [], []
-    missing = {}
+    available = {}
     for name, spec in specs.items():
         points = preset_points(spec, preset)
         if not points and preset == "smoke":
@@ -221,9 +213,9 @@ def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str], list[str]
         for point in points:
             scene = point.get("scene")
             if preset != "smoke" and isinstance(scene, str):
-                if scene not in missing:
-                    missing[scene] = scene_unavailable(scene)
-                if missing[scene]:
+                if scene not in available:
+                    available[scene] = scene_available(scene)
+                if not available[scene]:
                     if scene not in skipped:
                         skipped.append(scene)
                     continue

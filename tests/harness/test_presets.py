@@ -66,7 +66,7 @@ def test02_configs_validates_every_subgrid_point(method_with_subgrids):
 def test02b_points_on_unavailable_scenes_are_skipped_and_recorded_except_in_smoke(method_with_subgrids, monkeypatch):
     cfg = method_with_subgrids
     cfg.write_text(cfg.read_text().replace('scenes = ["toy"]', 'scenes = ["toy", "missing_scene"]'))  # every preset
-    monkeypatch.setattr(presets, "scene_unavailable", lambda scene: scene == "missing_scene")
+    monkeypatch.setattr(presets, "scene_available", lambda scene: scene != "missing_scene")
     configs, problems, record = presets.expand("quick", methods="synthetic_sync")
     assert problems == [] and len(configs) == 8 and {c["scene"] for c in configs} == {"toy"}
     assert record["skipped_scenes"] == ["missing_scene"]
@@ -81,9 +81,9 @@ def test02c_only_listed_scenes_whose_data_is_missing_are_skipped(monkeypatch):
     """A name the scene list does not know (a path, a typo) is not 'unavailable': its run's loading names the
     problem instead of a note that hides it."""
     monkeypatch.setenv("SPLITBENCH_SCENE_PATH", "")  # nothing but the project's own data folder
-    assert presets.scene_unavailable("dabrovic_sponza")  # listed, its OBJ not on the path
-    assert not presets.scene_unavailable("living_room")  # embedded
-    assert not presets.scene_unavailable("no_such_scene") and not presets.scene_unavailable("scenes/x.xml")
+    assert not presets.scene_available("dabrovic_sponza")  # listed, its OBJ not on the path
+    assert presets.scene_available("living_room")  # embedded
+    assert presets.scene_available("no_such_scene") and presets.scene_available("scenes/x.xml")
 
 
 @pytest.mark.parametrize("text, message", [
