@@ -17,7 +17,8 @@ A method's report checks the claims of its paper. Each check gives a :class:`Cla
 
 Only the first two are measurements. A claim is serialisable (:meth:`Claim.as_dict`, :meth:`Claim.from_dict`,
 :meth:`Claim.as_row`, :func:`claims_table`) so that the claims of every method can be gathered into one
-paper-against-suite table.
+paper-against-suite table. A report declares its claims in a :class:`ClaimList`, so that a claim whose runs are
+not in the results keeps its row (``not measurable here``, saying what it needs).
 """
 from __future__ import annotations
 
