@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -280,13 +279,9 @@ def run(argv=None) -> dict:
         layer_counts = [int(x) for x in args.layers.split(",")]
     except ValueError:
         raise UserError(f"bad --resolutions '{args.resolutions}' or --layers '{args.layers}'") from None
-    if args.scene == "auto":
-        from suite.harness.presets import scene_available
+    from suite.harness.cli import bench_scene
 
-        args.scene = "dabrovic_sponza" if scene_available("dabrovic_sponza") else "living_room"
-        if args.scene != "dabrovic_sponza":
-            print("splitbench: note: dabrovic_sponza is not available on this machine; bench layered_pvs uses "
-                  "living_room", file=sys.stderr)
+    args.scene = bench_scene(args.scene, "layered_pvs")
     scene = runner.load_scene(args.scene)
     tracer = runner.make_tracer(args.backend, scene)
     from methods.layered_pvs.method import _warm_up

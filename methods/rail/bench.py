@@ -263,12 +263,9 @@ def run(args) -> dict:
     from suite.core.scene import load
     from suite.core.trace import make
 
-    scene_name = args.scene
-    if scene_name == "auto":
-        from suite.harness.presets import scene_available
+    from suite.harness.cli import bench_scene
 
-        scene_name = "dabrovic_sponza" if scene_available("dabrovic_sponza") else "living_room"
-    scene = load(scene_name)
+    scene = load(bench_scene(args.scene, "rail"))
     tracer = make(args.backend, scene)
     targets = [int(x) for x in args.points.split(",")]
     paths = [int(x) for x in args.paths.split(",")]

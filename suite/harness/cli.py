@@ -288,6 +288,20 @@ def bench_parts(text: str, known, backend: str) -> list[str]:
     return parts
 
 
+def bench_scene(name: str, bench: str, preferred: str = "dabrovic_sponza", fallback: str = "living_room") -> str:
+    """A method bench's ``--scene``: ``auto`` is ``preferred`` where its data is on this machine, else ``fallback``
+    (with a note); any other name is kept."""
+    from suite.harness.presets import scene_available
+
+    if name != "auto":
+        return name
+    if scene_available(preferred):
+        return preferred
+    print(f"{PROG}: note: {preferred} is not available on this machine; bench {bench} uses {fallback}",
+          file=sys.stderr)
+    return fallback
+
+
 def bench_names() -> list[str]:
     """``tracing``, ``core``, ``clients`` plus every method folder that ships a bench.py."""
     from suite.harness import registry

@@ -211,8 +211,8 @@ def _configs(preset: str, specs: dict) -> tuple[list[dict], list[str], list[str]
             problems.append(f"method '{name}' has no [presets.{preset}] table; not run")
             continue
         for point in points:
-            scene = point.get("scene")
-            if preset != "smoke" and isinstance(scene, str):
+            scene = point["scene"]
+            if preset != "smoke":
                 if scene not in available:
                     available[scene] = scene_available(scene)
                 if not available[scene]:

@@ -270,10 +270,10 @@ class ClaimList:
 
     def complete(self, claims: list) -> list:
         """``claims`` plus one :data:`NOT_MEASURABLE` claim for every declared id that none of them has."""
-        unknown = sorted({c.id for c in claims} - set(self.expected))
+        have = {c.id for c in claims}
+        unknown = sorted(have - set(self.expected))
         if unknown:
             raise ValueError(f"method '{self.method}': claim '{unknown[0]}' is not declared in its ClaimList")
-        have = {c.id for c in claims}
         return list(claims) + [
             not_measurable(id, e.statement, e.source, f"not in these results: {_clause(e.needs)}",
                            paper_value=e.paper_value, unit=e.unit, method=self.method)
