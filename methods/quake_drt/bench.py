@@ -9,7 +9,10 @@ running anything:
     ``--repeats`` calls of stage and raw in turn: the primary stage (G-buffer plus anti-aliased shading rays,
     attributes, overlays) against the raw closest-hit query on its two camera ray sets; the direct stage (light
     rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
-    generated (captured from an untimed run).
+    generated (captured from an untimed run); the secondary stage (mirror, glass and water chains to depth 5, all
+    branches) against the raw closest-hit query on the continuation rays it traced (recorded in an untimed run).
+    The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena benchmark levels
+    have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry names the scene.
     Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct stage has work.
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
@@ -42,6 +45,7 @@ SCHEMA_VERSION = 1
 PARTS = ("rays", "asvgf", "lights")
 DEFAULT_SCENE = "oa:aggressor@pak1-maps"
 FALLBACK_SCENE = "two_rooms"  # methods/quake_drt/testscenes.py, when the OpenArena data is missing
+SECONDARY_SCENE = "gallery"  # embedded: a mirror and glass in view, for the secondary stage of a scene without them
 
 
 def _median_ms(fn, repeats: int):
@@ -109,7 +113,7 @@ class _Frame:
                             self.tracer, self.scene, pl._min_distance(self.scene), s.chunk_rays, capture=capture)
 
 
-def bench_rays(scene, tracer, resolution, t_s: float, repeats: int) -> dict:
+def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str = "embree") -> dict:
     """Part ``rays`` (module docstring)."""
     from suite.core.trace.base import as_rays
 
@@ -155,8 +159,73 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int) -> dict:
                      "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
                      "ratio": (dir_rays / dir_ms) / (len(o_all) / raw_ms) if len(o_all) else float("nan"),
                      "shadow_rays": int(len(o_all))}
+    out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, repeats, backend)
     return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
             "num_random_dl 0 (every culled light), antialiasing on", **out}
+
+
+class _RecordingTracer:
+    """Forwards every closest-hit query to ``tracer`` and keeps its rays in the tracer's frame and layout, ready for
+    ``raw_intersect``. The secondary stage queries only ``intersect`` (directly or through ``walk_past``)."""
+
+    def __init__(self, tracer):
+        self.tracer, self.rays = tracer, []
+
+    def intersect(self, o, d, tmin=0.0, tmax=np.inf):
+        from suite.core.trace.base import as_rays
+
+        ro, rd, _, rlen = as_rays(o, d, tmin, tmax, self.tracer.shift)
+        self.rays.append((ro, np.array(rd), rlen))  # fresh arrays: the stage may reuse its own
+        return self.tracer.intersect(o, d, tmin, tmax)
+
+    def __getattr__(self, name):
+        if name in ("occluded", "intersect_local", "occluded_local"):  # not reached through to the tracer unrecorded
+            raise AttributeError(name)
+        return getattr(self.tracer, name)
+
+
+def _has_specular(scene) -> bool:
+    return any(m.is_specular for m in scene.materials)
+
+
+def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend: str = "embree") -> dict:
+    """The ``secondary`` entry of part ``rays`` (module docstring): on ``scene`` when it has specular materials,
+    else on :data:`SECONDARY_SCENE` with a tracer of ``backend`` (``tracer``'s)."""
+    from methods.quake_drt import primary, secondary
+    from suite.harness import runner
+
+    if not _has_specular(scene):
+        scene = runner.load_scene(SECONDARY_SCENE)
+        tracer = runner.make_tracer(backend, scene)
+    # No light culling: this stage does not read the PVS (and a scene without a BSP would compute one first).
+    f = _Frame(scene, tracer, resolution, t_s, num_random_dl=0, denoiser=False, taa=False, pvs="none")
+    s, seeds = f.settings, f.seeds()
+    overlay = f.pipe._overlays(scene)
+    skip = None if overlay is None else overlay > 0
+    _, surf = primary.primary_stage(scene, tracer, t_s, None, (f.w, f.h), seeds, s.antialiasing,
+                                    s.dof_aperture_m if s.dof else 0.0, s.dof_focal_m, overlay, s.overlay_alpha)
+
+    def stage(tr=tracer):
+        return secondary.secondary_stage(scene, tr, t_s, surf, seeds, s.max_depth, s.all_branches,
+                                         s.glossy_reflections, s.glossy_cone_deg, skip)
+
+    recorder = _RecordingTracer(tracer)
+    result = stage(recorder)
+    raw_rays = int(sum(len(d) for _, d, _ in recorder.rays))
+    entry = {"scene": scene.name, "rays_per_depth": [int(n) for n in result.rays_per_depth],
+             "specular_pixels": int(len(np.unique(result.points.pixel))) if len(result.points) else 0}
+    if raw_rays == 0:
+        return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
+                "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
+
+    def raw_secondary():
+        for ro, rd, rlen in recorder.rays:
+            tracer.raw_intersect(ro, rd, rlen.copy())  # embreex overwrites the lengths it is given
+
+    ms, raw_ms = _interleaved_ms(stage, raw_secondary, repeats)
+    rays = f.rays(stage)  # backend queries: the continuation rays and any alpha walk past transparent texels
+    return {**entry, "ms": ms, "rays": rays, "rays_per_s": rays / (ms / 1e3), "raw_ms": raw_ms, "raw_rays": raw_rays,
+            "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
 
 
 def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int) -> dict:
@@ -335,7 +404,8 @@ def run(args) -> dict:
     many = _resolutions(args.resolutions)
     out = {}
     if "rays" in parts:
-        out["rays"] = {"backend": args.backend, **bench_rays(scene, tracer, res, args.time, args.repeats)}
+        out["rays"] = {"backend": args.backend, **bench_rays(scene, tracer, res, args.time, args.repeats,
+                                                                  args.backend)}
     if "asvgf" in parts:
         out["asvgf"] = {"backend": args.backend, **bench_asvgf(scene, tracer, many, args.time, args.repeats)}
     if "lights" in parts:
@@ -350,10 +420,13 @@ def format_results(out: dict) -> str:
         r = out["rays"]
         lines.append(f"rays/s, stage vs raw {r['backend']}: scene {r['scene']} {r['resolution'][0]}x"
                      f"{r['resolution'][1]}, median of {r['repeats']}")
-        for stage in ("primary", "direct"):
-            s = r[stage]
-            lines.append(f"  {stage:8} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
-                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}")
+        for stage in ("primary", "secondary", "direct"):
+            s = r.get(stage)
+            if s is None:
+                continue
+            where = f"   on {s['scene']}" if s.get("scene", r["scene"]) != r["scene"] else ""
+            lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
+                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}{where}")
     if "asvgf" in out:
         r = out["asvgf"]
         lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")

@@ -476,13 +476,15 @@ def _bench_part(bench, files: SectionFiles) -> str:
         return out[0] + _NO_BENCH
     r = bench.get("rays")
     if r:
-        rows = [{"stage": s, "rays": r[s]["rays"], "ms": r[s]["ms"], "rays/s": r[s]["rays_per_s"],
-                 "raw rays/s": r[s]["raw_rays_per_s"], "stage / raw": r[s]["ratio"]} for s in ("primary", "direct")]
+        rows = [{"stage": s, "scene": r[s].get("scene", r["scene"]), "rays": r[s]["rays"], "ms": r[s]["ms"],
+                 "rays/s": r[s]["rays_per_s"], "raw rays/s": r[s]["raw_rays_per_s"], "stage / raw": r[s]["ratio"]}
+                for s in ("primary", "secondary", "direct") if s in r]
         t = pd.DataFrame(rows)
         out.append(_caption(r["scene"], r.get("backend", NOT_RECORDED), f"{r['resolution'][0]}x{r['resolution'][1]}",
                             f", {r.get('settings', '')}, median of {r['repeats']}")
                    + "<p>Bench: rays per second of the tracing stages against the backend's raw query on the same "
-                     "rays." + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))
+                     "rays (the secondary stage on a scene with mirrors and glass when the benchmark's level has "
+                     "none; its scene column says where)." + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))
     a = bench.get("asvgf")
     if a:
         t = pd.DataFrame(a["rows"])

@@ -17,6 +17,11 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert {"rays", "asvgf", "lights", "packages", "host"} <= set(doc)
     r = doc["rays"]
     assert r["direct"]["rays"] == r["direct"]["raw_rays"] > 0 and r["primary"]["rays"] > 0
+    # two_rooms has no mirror or glass: the secondary stage is measured on the gallery, and says so
+    sec = r["secondary"]
+    assert sec["scene"] == bench.SECONDARY_SCENE and sec["specular_pixels"] > 0
+    assert sec["raw_rays"] == sum(sec["rays_per_depth"]) > 0 and sec["rays"] >= sec["raw_rays"]
+    assert math.isfinite(sec["ratio"]) and sec["ratio"] > 0
     rows = {row["case"]: row for row in doc["lights"]["rows"]}
     assert rows["culled, all of the row"]["shadow_rays"] < rows["all lights, no culling"]["shadow_rays"]
     assert rows["culled, k = 1"]["shaded_per_point"] == 1.0
