@@ -16,6 +16,7 @@ import numpy as np
 
 from suite.core import shading
 from suite.core.gbuffer import camera_rays, surface_attributes
+from suite.core.pipeline import SerialTracer
 from suite.core.scene.model import CameraPose
 from suite.core.trace.base import MAX_RAY_LENGTH
 from suite.core.trace.robust import offset_ray_origin
@@ -523,7 +524,7 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     else:
         from concurrent.futures import ThreadPoolExecutor
 
-        serial = _Serial(tracer, threading.Lock())
+        serial = SerialTracer(tracer, threading.Lock())
 
         def direct_light():
             try:
@@ -568,34 +569,6 @@ def _path_moments(sample, n: int, spp: int):
     m1 = lum.sum(axis=0)
     m2 = (lum * lum).sum(axis=0)
     return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
-
-
-class _Serial:
-    """A tracer whose queries run one at a time under ``lock``: one stream of rays whatever thread sends them (and
-    the tracer's scratch buffers and counters are touched by one query at a time). It has the tracer's queries
-    (``intersect``, ``occluded`` and the ``*_local`` ones where the tracer has them), each under the lock;
-    everything else is the tracer's. ``queried`` is set once a query has taken the lock."""
-
-    QUERIES = ("intersect", "occluded", "intersect_local", "occluded_local")
-
-    def __init__(self, tracer, lock):
-        self.tracer, self.lock = tracer, lock
-        self.queried = threading.Event()  # set when a query first holds the lock
-        for name in self.QUERIES:
-            if hasattr(tracer, name):
-                setattr(self, name, self._locked(getattr(tracer, name)))
-
-    def _locked(self, query):
-        def call(*args, **kwargs):
-            with self.lock:
-                self.queried.set()
-                return query(*args, **kwargs)
-        return call
-
-    def __getattr__(self, name):
-        if name in self.QUERIES:  # one the tracer lacks: not reached through to it unlocked
-            raise AttributeError(name)
-        return getattr(self.tracer, name)
 
 
 def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, lights,

@@ -12,6 +12,10 @@ two interleaved streams of alternate pixel blocks: the backend took about 4 % lo
 less coherent queries and the streams fell out of step at every layer's end, so it was no faster than one chain
 (Dabrovic Sponza 480x270, 8 layers: 166 against 161 ms), and peeling stays one chain.
 
+Passes whose batches are chains of dependent queries of their own (a path tracer's bounces, specular chains) run
+their independent parts on threads instead, each part's queries under one lock (:class:`SerialTracer`), so that one
+part's compiled passes overlap another's query.
+
 Rays are handed to the backend in its own frame and layout (:func:`local_rays`, then ``intersect_local``), made on
 the worker, so the tracing thread only queries. The worker is kept for the process; a pipeline started while it
 serves another (another thread's, or from inside a step) gets a thread of its own.
@@ -42,6 +46,37 @@ def trace_local(tracer, query, origins, dirs) -> Hits:
     """Closest hits of the rays ``(origins, dirs)``: ``tracer.intersect_local(*query)`` with the query
     :func:`local_rays` made of them (the same rays, queries and hits as ``tracer.intersect(origins, dirs)``)."""
     return tracer.intersect(origins, dirs) if query is None else tracer.intersect_local(*query)
+
+
+
+class SerialTracer:
+    """A tracer whose queries run one at a time under ``lock``, for passes whose parts run on threads of their own
+    (their compiled passes releasing the GIL beside another part's query): one stream of rays whatever thread sends
+    them (and
+    the tracer's scratch buffers and counters are touched by one query at a time). It has the tracer's queries
+    (``intersect``, ``occluded`` and the ``*_local`` ones where the tracer has them), each under the lock;
+    everything else is the tracer's. ``queried`` is set once a query has taken the lock."""
+
+    QUERIES = ("intersect", "occluded", "intersect_local", "occluded_local")
+
+    def __init__(self, tracer, lock):
+        self.tracer, self.lock = tracer, lock
+        self.queried = threading.Event()  # set when a query first holds the lock
+        for name in self.QUERIES:
+            if hasattr(tracer, name):
+                setattr(self, name, self._locked(getattr(tracer, name)))
+
+    def _locked(self, query):
+        def call(*args, **kwargs):
+            with self.lock:
+                self.queried.set()
+                return query(*args, **kwargs)
+        return call
+
+    def __getattr__(self, name):
+        if name in self.QUERIES:  # one the tracer lacks: not reached through to it unlocked
+            raise AttributeError(name)
+        return getattr(self.tracer, name)
 
 
 # The worker thread of the pipelines, kept for the process (made on first use; a forked child makes its own).

@@ -69,3 +69,51 @@ def test03_glossy_reflections_blur_the_mirror_and_keep_other_pixels(renderer, ma
     assert not np.allclose(glossy[mirror], sharp[mirror], rtol=1e-3)
     untouched = ~mirror & (raw.g.kind == 0)
     assert np.allclose(glossy[untouched], sharp[untouched], rtol=1e-5, atol=1e-7)
+
+
+def _secondary_inputs(renderer, scene, **settings):
+    from methods.quake_drt import primary
+
+    r = renderer(scene, None, RES, num_random_dl=0, pvs="none", transparency="scene", antialiasing=True, **settings)
+    seeds = r.seeds(3)
+    _, surf = primary.primary_stage(scene, r.tracer, 0.0, None, RES, seeds, True)
+    return r, seeds, surf
+
+
+def _same_result(a, b):
+    fields = ("pixel", "throughput", "p", "ng", "ns", "wi", "albedo", "material", "prim", "seed", "lambert")
+    return (a.rays_per_depth == b.rays_per_depth and np.array_equal(a.emission, b.emission)
+            and all(np.array_equal(getattr(a.points, f), getattr(b.points, f)) for f in fields)
+            and all(np.array_equal(getattr(a, f), getattr(b, f))
+                    for f in ("guide_pixel", "guide_p", "guide_n", "guide_depth")))
+
+
+@pytest.mark.parametrize("all_branches", [True, False])
+@pytest.mark.parametrize("min_chains", [1, 10 ** 9], ids=["two threads", "one part"])
+def test04_the_compiled_passes_have_the_bits_of_the_numpy_reference(renderer, materials_scene, monkeypatch,
+                                                                    all_branches, min_chains):
+    """Mirror (Fresnel conductor), glass (both branches, or one picked at random), the two-sided rough conductor's
+    BSDF normal and the guides: every ray, weight, point and guide of the compiled stage equals the reference's,
+    whether its parts run on two threads or there is one part."""
+    from methods.quake_drt import secondary
+
+    monkeypatch.setattr(secondary, "PART_MIN_CHAINS", min_chains)
+    r, seeds, surf = _secondary_inputs(renderer, materials_scene)
+    ref = secondary.secondary_stage_reference(materials_scene, r.tracer, 0.0, surf, seeds, 5, all_branches)
+    out = secondary.secondary_stage(materials_scene, r.tracer, 0.0, surf, seeds, 5, all_branches)
+    assert sum(ref.rays_per_depth) > 100 and len(ref.points) > 50 and len(ref.rays_per_depth) >= 3
+    assert (ref.points.lambert == 0).any() and ref.points.lambert.any()  # glossy metal and diffuse walls reached
+    assert _same_result(out, ref)
+
+
+def test05_the_frame_does_not_depend_on_how_the_chains_are_split(renderer, materials_scene, monkeypatch):
+    """A pixel's chains stay in one part and keep their order, so its emission and shading sums are the same."""
+    from methods.quake_drt import secondary
+
+    images = []
+    for parts, min_chains in ((1, 1), (2, 1), (3, 1)):
+        monkeypatch.setattr(secondary, "PARTS", parts)
+        monkeypatch.setattr(secondary, "PART_MIN_CHAINS", min_chains)
+        images.append(renderer(materials_scene, None, RES, num_random_dl=0, pvs="none", transparency="scene",
+                               max_depth=5).raw(2)[0])
+    assert np.array_equal(images[0], images[1]) and np.array_equal(images[0], images[2])
