@@ -117,3 +117,19 @@ def test05_the_frame_does_not_depend_on_how_the_chains_are_split(renderer, mater
         images.append(renderer(materials_scene, None, RES, num_random_dl=0, pvs="none", transparency="scene",
                                max_depth=5).raw(2)[0])
     assert np.array_equal(images[0], images[1]) and np.array_equal(images[0], images[2])
+
+
+def test06_the_guide_is_the_first_of_the_strongest_chains_as_lexsort_picks_it():
+    """Ties keep the first point, NaN strengths lose to numbers: the pick of ``np.lexsort((-strength, pixel))``."""
+    from methods.quake_drt import secondary
+
+    rng = np.random.default_rng(4)
+    pixel = rng.integers(0, 40, 400)
+    thr = rng.integers(0, 3, (400, 3)).astype(np.float64)  # many equal sums
+    thr[rng.random(400) < 0.05, 1] = np.nan
+    best = secondary._strongest(pixel, thr, 50)
+    strength = thr.sum(axis=1)
+    order = np.lexsort((-strength, pixel))
+    first = order[np.r_[True, np.diff(pixel[order]) != 0]]
+    assert np.array_equal(best[best >= 0], first)
+    assert (best[np.setdiff1d(np.arange(50), pixel)] == -1).all()
