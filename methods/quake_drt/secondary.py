@@ -88,7 +88,6 @@ def _cone(axis: np.ndarray, cos_max: float, u1: np.ndarray, u2: np.ndarray) -> n
     return _unit(cos_t[:, None] * axis + (sin_t * np.cos(phi))[:, None] * t1 + (sin_t * np.sin(phi))[:, None] * t2)
 
 
-
 class _NumpyBranches:
     """One depth's continuation rays as whole-array numpy expressions, material by material (ascending ids), each
     material's branches in order (mirror: the reflection; glass and water: reflection, then refraction), each
@@ -98,6 +97,7 @@ class _NumpyBranches:
         self.scene, self.seeds, self.all_branches, self.glossy = scene, seeds, all_branches, glossy
         self.cos_max = float(np.cos(np.radians(glossy_cone_deg)))
         self.shift = shift
+        self.spec = _specular(scene)
 
     def __call__(self, v, depth: int):
         scene, seeds, cos_max = self.scene, np.asarray(self.seeds, np.uint32).reshape(-1), self.cos_max
@@ -151,15 +151,13 @@ class _NumpyBranches:
                     np.zeros((0, 3)))
         return (*(np.concatenate(x) for x in (pix, thr, path, length)), np.concatenate(org), np.concatenate(dirs))
 
-
     def surfaces(self, t_s: float, h, rays, emission, more: bool):
         """The hits ``h`` of ``rays``: their emission added to ``emission`` (per pixel, in ray order), the shading
         points of the diffuse and glossy ones with their path lengths (None if there are none), and the chains that
         go on from the specular ones (none when ``more`` is false)."""
         from methods.quake_drt.primary import surface_from_hits_reference
 
-        scene, seeds = self.scene, np.asarray(self.seeds, np.uint32).reshape(-1)
-        spec = np.array([m.is_specular for m in scene.materials], bool)
+        scene, seeds, spec = self.scene, np.asarray(self.seeds, np.uint32).reshape(-1), self.spec
         pix, thr, path, length, org, dirs = rays
         hit = np.asarray(h.prim) >= 0
         prim = np.asarray(h.prim, np.int64)[hit]
@@ -185,6 +183,7 @@ class _NumpyBranches:
         return lit, {"pixel": pix[cont], "thr": thr[cont], "path": path[cont], "length": length[cont],
                      "p": p[cont], "ng": ng[cont], "ns": ns[cont], "d": d_h[cont], "material": material[cont]}
 
+
 class _CompiledBranches:
     """:class:`_NumpyBranches` (without glossy reflections) as one compiled pass per depth, :func:`_branch_pass`."""
 
@@ -200,7 +199,7 @@ class _CompiledBranches:
         self.spec_r, self.spec_t = table("specular_reflectance"), table("specular_transmittance")
         self.eta = np.array([m.eta if m.kind != "mirror" and m.is_specular else 1.0 for m in mats], np.float64)
         self.scene = scene
-        self.spec = np.array([m.is_specular for m in mats], np.bool_)
+        self.spec = _specular(scene)
         self.lambert = np.array([m.shading_kind == "diffuse" for m in mats], np.bool_)
         # bsdf_normal per material: 0 the viewer-side normal, 1 the raw one turned to the viewer, 2 the raw one
         self.normal_mode = np.array([0 if (m.shading_kind == "diffuse" or not m.is_glossy) else (1 if m.twosided else 2)
@@ -214,10 +213,10 @@ class _CompiledBranches:
         length = np.empty(2 * m)
         f = lambda a, t=np.float64: np.ascontiguousarray(a, t)  # noqa: E731
         k = _branch_pass(f(v["pixel"], np.int64), f(v["thr"]), f(v["path"], np.int64), f(v["length"]), f(v["p"]),
-                      f(v["ng"]), f(v["ns"]), f(v["d"]), f(v["material"], np.int64), self.seeds, self.kind,
-                      self.twosided, self.cond_eta, self.cond_k, self.spec_r, self.spec_t, self.eta,
-                      self.all_branches, DIM_SECONDARY + 3 * depth, self.shift, OFFSET_ULPS, FLOAT_SCALE,
-                      pix, thr, path, length, org, dirs)
+                         f(v["ng"]), f(v["ns"]), f(v["d"]), f(v["material"], np.int64), self.seeds, self.kind,
+                         self.twosided, self.cond_eta, self.cond_k, self.spec_r, self.spec_t, self.eta,
+                         self.all_branches, DIM_SECONDARY + 3 * depth, self.shift, OFFSET_ULPS, FLOAT_SCALE,
+                         pix, thr, path, length, org, dirs)
         return pix[:k], thr[:k], path[:k], length[:k], org[:k], dirs[:k]
 
     def surfaces(self, t_s: float, h, rays, emission, more: bool):
@@ -400,7 +399,6 @@ def _branch_pass(pixel, thr, path, length, p, ng, ns, d, material, seeds, kind, 
     return total
 
 
-
 @numba.njit(nogil=True, error_model="numpy")
 def _compact_hits(h_prim, h_u, h_v, h_t, pix, thr, path, length, org, dirs,
                   prim, u, v, t, o_pix, o_thr, o_path, o_len, o_org, o_dir):
@@ -442,7 +440,8 @@ def _split_hits(pix, thr, path, length, d, prim, p, ng, ns, ngv, nsv, albedo, em
             n_cont += 1
             c_pix[j], c_path[j], c_len[j], c_material[j] = q, path[i], length[i], mat
             for c in range(3):
-                c_thr[j, c], c_p[j, c], c_ng[j, c], c_ns[j, c], c_d[j, c] = thr[i, c], p[i, c], ng[i, c], ns[i, c], d[i, c]
+                c_thr[j, c], c_p[j, c], c_d[j, c] = thr[i, c], p[i, c], d[i, c]
+                c_ng[j, c], c_ns[j, c] = ng[i, c], ns[i, c]
             continue
         j = n_lit
         n_lit += 1
@@ -515,7 +514,7 @@ def secondary_stage(scene, tracer, t_s: float, surface, seeds: np.ndarray, max_d
         return secondary_stage_reference(scene, tracer, t_s, surface, seeds, max_depth, all_branches, glossy,
                                          glossy_cone_deg, skip_faces)
     branches = _CompiledBranches(scene, seeds, all_branches, getattr(tracer, "shift", None))
-    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, threads=True)
+    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, compiled=True)
 
 
 def secondary_stage_reference(scene, tracer, t_s: float, surface, seeds: np.ndarray,
@@ -524,7 +523,7 @@ def secondary_stage_reference(scene, tracer, t_s: float, surface, seeds: np.ndar
     """:func:`secondary_stage` with each depth's branches and surfaces as whole-array numpy expressions per
     material, the parts one after the other (the reference the compiled passes are tested against)."""
     branches = _NumpyBranches(scene, seeds, all_branches, glossy, glossy_cone_deg, getattr(tracer, "shift", None))
-    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, threads=False)
+    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, compiled=False)
 
 
 # Parts of the specular chains (runs of pixels followed on their own threads: one traced while another's compiled
@@ -533,15 +532,21 @@ PARTS = 2
 PART_MIN_CHAINS = 2048
 
 
-def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: float, threads: bool):
-    spec = np.array([m.is_specular for m in scene.materials], bool)
-    rows = np.nonzero(surface.valid & spec[np.maximum(surface.material, 0)])[0]
+def _specular(scene) -> np.ndarray:
+    """Per material: mirror or glass (its chains go on)."""
+    return np.array([m.is_specular for m in scene.materials], np.bool_)
+
+
+def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: float, compiled: bool):
+    """The chains of every specular pixel of ``surface`` in :data:`PARTS` parts (:func:`_chains`), merged; with
+    ``compiled`` the parts run on threads on a host tracer and the guides come from :func:`_strongest`."""
+    rows = np.nonzero(surface.valid & branches.spec[np.maximum(surface.material, 0)])[0]
     emission = np.zeros((len(surface.valid), 3))
     count = PARTS if len(rows) >= PART_MIN_CHAINS else 1
     bounds = np.linspace(0, len(rows), count + 1).astype(np.int64)
     parts = [rows[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
     args = (scene, t_s, surface, max_depth, skip_faces, branches, emission)
-    if threads and count > 1 and getattr(tracer, "device", None) is None:
+    if compiled and count > 1 and getattr(tracer, "device", None) is None:
         import threading
         from concurrent.futures import ThreadPoolExecutor
 
@@ -561,7 +566,7 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     # The denoiser's guides for specular pixels: the strongest chain's shading point (the first of equals), by
     # pixel.
     if len(points):
-        if threads:
+        if compiled:
             best = _strongest(points.pixel, points.throughput, len(surface.valid))
             first = best[best >= 0]
         else:
