@@ -8,6 +8,7 @@ harness and both backends (Embree, Mitsuba) serve them.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -255,22 +256,48 @@ def _facing(ng, ns, d):
 def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
     """Every layer fragment's surface (:func:`suite.core.gbuffer.surface_attributes`), its normals facing the layer
     camera and its emission on front faces only. The gathers and the facing are compiled passes
-    (:mod:`methods.layered_pvs.kernels`) with the bits of :func:`fragments_reference`."""
+    (:mod:`methods.layered_pvs.kernels`) with the bits of :func:`fragments_reference`; the fragments are split into
+    contiguous runs, one per core (:data:`FRAGMENT_RUN_MIN` at least), each on a thread of its own (the passes
+    write their rows of shared outputs and release the GIL)."""
     kern = kernels.jit()
     k, y, x = np.nonzero(layers.valid)
     n = len(k)
     prim, u, v = np.empty(n, np.int64), np.empty(n, np.float32), np.empty(n, np.float32)
     o, d = np.empty((n, 3)), np.empty((n, 3))
-    kern["_gather_fragments"](k, y, x, np.ascontiguousarray(layers.prim, np.int64),
-                              np.ascontiguousarray(layers.u, np.float32), np.ascontiguousarray(layers.v, np.float32),
-                              np.ascontiguousarray(origins64, np.float64), np.ascontiguousarray(dirs64, np.float64),
-                              prim, u, v, o, d)
-    p, ng, ns, alb, em = surface_attributes(scene, scene.positions_at(t_s), scene.normals_at(t_s), prim, u, v, o, d)
-    em = np.ascontiguousarray(em)
-    ng_f, ns_f, em_f, front = np.empty((n, 3)), np.empty((n, 3)), np.empty_like(em), np.empty(n, np.bool_)
-    kern["_face_fragments"](np.ascontiguousarray(ng, np.float64), np.ascontiguousarray(ns, np.float64), d, em, ng_f,
-                            ns_f, em_f, front)
+    p, ng, ns = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    alb, em = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    ng_f, ns_f, em_f, front = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3), np.float32), np.empty(n, np.bool_)
+    layer_prim = np.ascontiguousarray(layers.prim, np.int64)
+    layer_u, layer_v = np.ascontiguousarray(layers.u, np.float32), np.ascontiguousarray(layers.v, np.float32)
+    origins64, dirs64 = np.ascontiguousarray(origins64, np.float64), np.ascontiguousarray(dirs64, np.float64)
+    positions, normals = scene.positions_at(t_s), scene.normals_at(t_s)
+
+    def run(a: int, b: int) -> None:
+        r = slice(a, b)
+        kern["_gather_fragments"](k[r], y[r], x[r], layer_prim, layer_u, layer_v, origins64, dirs64, prim[r], u[r],
+                                  v[r], o[r], d[r])
+        surface_attributes(scene, positions, normals, prim[r], u[r], v[r], o[r], d[r],
+                           out=(p[r], ng[r], ns[r], alb[r], em[r]))
+        kern["_face_fragments"](ng[r], ns[r], d[r], em[r], ng_f[r], ns_f[r], em_f[r], front[r])
+
+    runs = max(1, min(os.cpu_count() or 1, n // FRAGMENT_RUN_MIN))
+    bounds = np.linspace(0, n, runs + 1).astype(np.int64)
+    if runs == 1:
+        run(0, n)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(runs - 1) as pool:
+            pending = [pool.submit(run, int(a), int(b)) for a, b in zip(bounds[1:-1], bounds[2:])]
+            run(0, int(bounds[1]))
+            for f in pending:
+                f.result()
     return Fragments((k, y, x), p, ng_f, ns_f, alb, em_f, d)
+
+
+# The fewest fragments worth a thread of their own in :func:`fragments` (below, one run: a thread's start-up and the
+# shared tables' set-up cost more than the rows take).
+FRAGMENT_RUN_MIN = 1 << 15
 
 
 def fragments_reference(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
@@ -505,8 +532,9 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     :func:`path_trace_reference`, which runs the same parts one after the other. On a host tracer the parts and
     the primary fragments' direct lighting run on their own threads that take turns at the tracer (one query at
     a time, under a lock: one stream of rays, as the raw backend traces them), so one thread's shading passes
-    (compiled, the GIL released) overlap another's queries. The direct light is added last, so the sums do not
-    depend on the order the threads ran in."""
+    (compiled, the GIL released) overlap another's queries; three threads on two cores, so each runs as a
+    :meth:`SerialTracer.part` (the query keeps a core of its own). The direct light is added last, so the sums do
+    not depend on the order the threads ran in."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
@@ -528,17 +556,22 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
 
         def direct_light():
             try:
-                return direct_illumination(scene, serial, frag, t_s, max(int(spp), 1), seed)
+                with serial.part():
+                    return direct_illumination(scene, serial, frag, t_s, max(int(spp), 1), seed)
             finally:
                 serial.queried.set()
+
+        def paths(part):
+            with serial.part():
+                _part_paths(serial, *shared, *part)
 
         with ThreadPoolExecutor(max_workers=len(parts)) as pool:
             pending_direct = pool.submit(direct_light)
             # The parts' set-up (gathers and random numbers, holding the GIL) waits until the backend traces the
             # direct light's first rays: started together, it held those rays back by about 15 ms.
             serial.queried.wait()
-            pending = [pool.submit(_part_paths, serial, *shared, *part) for part in parts[1:]]
-            _part_paths(serial, *shared, *parts[0])
+            pending = [pool.submit(paths, part) for part in parts[1:]]
+            paths(parts[0])
             direct = pending_direct.result()
             for f in pending:
                 f.result()

@@ -361,7 +361,7 @@ def _kernels():
     return _compiled
 
 
-def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=None):
+def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=None, out=None):
     """Interpolated position, geometric and shading normals, albedo and emission for hit records.
 
     With float64 rays (``ray_o``, ``ray_d``) the position is the exact intersection of the ray with the hit
@@ -369,7 +369,9 @@ def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=
     distance from the origin, which would shift shadow edges in scenes far from the origin.
 
     Everything comes from one compiled pass over the hits (:func:`_surface`), with the bits of
-    :func:`surface_attributes_reference`.
+    :func:`surface_attributes_reference`. ``out`` (p, ng, ns float64 (N, 3), albedo, emission float32 (N, 3), C
+    order) receives the results in place of new arrays (the rows of a larger buffer, for hits split between
+    threads).
     """
     prim = np.ascontiguousarray(prim, np.int64)
     u, v = np.asarray(u), np.asarray(v)
@@ -379,8 +381,15 @@ def surface_attributes(scene, positions, normals, prim, u, v, ray_o=None, ray_d=
     dt = u.dtype if same else np.dtype(np.float64)
     u, v = np.ascontiguousarray(u, dt).reshape(-1), np.ascontiguousarray(v, dt).reshape(-1)
     n = len(prim)
-    p, ng, ns = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
-    albedo, emission = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    if out is None:
+        p, ng, ns = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+        albedo, emission = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    else:
+        p, ng, ns, albedo, emission = out
+        for arr, want in zip(out, (np.float64,) * 3 + (np.float32,) * 2):
+            if arr.shape != (n, 3) or arr.dtype != want or not arr.flags.c_contiguous:
+                raise ValueError(f"surface_attributes: an output array is {arr.dtype} {arr.shape}, not C-ordered "
+                                 f"{np.dtype(want)} ({n}, 3)")
     if n == 0:
         return p, ng, ns, albedo, emission
     use_ray = ray_o is not None

@@ -52,25 +52,52 @@ def trace_local(tracer, query, origins, dirs) -> Hits:
 class SerialTracer:
     """A tracer whose queries run one at a time under ``lock``, for passes whose parts run on threads of their own
     (their compiled passes releasing the GIL beside another part's query): one stream of rays whatever thread sends
-    them (and
-    the tracer's scratch buffers and counters are touched by one query at a time). It has the tracer's queries
-    (``intersect``, ``occluded`` and the ``*_local`` ones where the tracer has them), each under the lock;
-    everything else is the tracer's. ``queried`` is set once a query has taken the lock."""
+    them (and the tracer's scratch buffers and counters are touched by one query at a time). It has the tracer's
+    queries (``intersect``, ``occluded`` and the ``*_local`` ones where the tracer has them), each under the lock;
+    everything else is the tracer's. ``queried`` is set once a query has taken the lock.
+
+    Where parts outnumber the cores, each part's thread runs its work inside :meth:`part`: its passes take one of
+    ``cores`` slots (default: every core but one), which its queries give up while they wait for and hold the
+    tracer, so the query always has a core of its own. Unbounded, three parts on two cores ran two parts' passes
+    beside a query and the query's thread shared a core (the layered path tracer on Dabrovic Sponza 480x270, 4
+    layers, Embree: 0.845 of the raw rate unbounded, 0.88 with one slot). With no more parts than cores the slots
+    only make a part that has finished its query wait for one (the two-part specular chains: 0.61 unbounded, 0.59
+    with one slot), and those parts run outside :meth:`part`."""
 
     QUERIES = ("intersect", "occluded", "intersect_local", "occluded_local")
 
-    def __init__(self, tracer, lock):
+    def __init__(self, tracer, lock, cores: int | None = None):
         self.tracer, self.lock = tracer, lock
         self.queried = threading.Event()  # set when a query first holds the lock
+        self._cores = threading.Semaphore(max((os.cpu_count() or 2) - 1, 1) if cores is None else max(int(cores), 1))
+        self._in_part = threading.local()
         for name in self.QUERIES:
             if hasattr(tracer, name):
                 setattr(self, name, self._locked(getattr(tracer, name)))
 
+    @contextmanager
+    def part(self):
+        """The calling thread's work as one part: its passes on a core slot, given up during its queries."""
+        self._cores.acquire()
+        self._in_part.on = True
+        try:
+            yield self
+        finally:
+            self._in_part.on = False
+            self._cores.release()
+
     def _locked(self, query):
         def call(*args, **kwargs):
-            with self.lock:
-                self.queried.set()
-                return query(*args, **kwargs)
+            in_part = getattr(self._in_part, "on", False)
+            if in_part:
+                self._cores.release()
+            try:
+                with self.lock:
+                    self.queried.set()
+                    return query(*args, **kwargs)
+            finally:
+                if in_part:
+                    self._cores.acquire()
         return call
 
     def __getattr__(self, name):

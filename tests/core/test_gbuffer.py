@@ -226,3 +226,54 @@ def test12_a_pipeline_inside_a_step_of_another_runs_on_a_worker_of_its_own():
     outer[1] = (make, trace, nested_finish)
     pipelined(outer)
     assert sorted(k for kind, k, _ in inner if kind == "finish") == list(range(5))
+
+
+def test13_serial_tracer_parts_query_one_at_a_time_and_leave_the_query_a_core():
+    """Parts on threads of their own: queries run one at a time, and inside ``part()`` at most ``cores`` parts run
+    their passes at once, a part's slot given up while its query waits for and holds the tracer (so three parts
+    with one slot still overlap one part's passes with another's query)."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from suite.core.pipeline import SerialTracer
+
+    state = {"passes": 0, "queries": 0, "max_passes": 0, "max_queries": 0, "overlap": 0}
+    guard = threading.Lock()
+
+    def enter(kind):
+        with guard:
+            state[kind] += 1
+            state["max_" + kind] = max(state["max_" + kind], state[kind])
+            if state["passes"] and state["queries"]:
+                state["overlap"] += 1
+
+    def leave(kind):
+        with guard:
+            state[kind] -= 1
+
+    class Backend:
+        def intersect(self, o, d):
+            enter("queries")
+            time.sleep(0.002)
+            leave("queries")
+            return len(d)
+
+    serial = SerialTracer(Backend(), threading.Lock(), cores=1)
+
+    def part(k):
+        with serial.part():
+            for _ in range(6):
+                enter("passes")
+                time.sleep(0.002)  # a compiled pass (the GIL released)
+                leave("passes")
+                assert serial.intersect(None, [k] * 3) == 3
+        return k
+
+    with ThreadPoolExecutor(3) as pool:
+        assert sorted(pool.map(part, range(3))) == [0, 1, 2]
+    assert state["max_queries"] == 1 and state["max_passes"] == 1
+    assert state["overlap"] > 0
+    assert serial.queried.is_set()
+    with pytest.raises(AttributeError):
+        serial.occluded_local  # noqa: B018  (the backend has no such query: not reached through unlocked)

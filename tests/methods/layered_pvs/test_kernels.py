@@ -177,10 +177,13 @@ def test06_client_layer_match_gives_the_choices_of_the_numpy_expressions():
     assert 300 < ref_matched.sum() < len(i) and (~ref_inside).sum() > 500
 
 
+@pytest.mark.parametrize("threads", [1, 3])
 @pytest.mark.parametrize("name", ["oa:aggressor@pak1-maps", "gallery"])
-def test07_compiled_fragments_equal_their_reference(name):
+def test07_compiled_fragments_equal_their_reference(name, threads, monkeypatch):
     """The fragments' gathers, facing normals and front-face emission: the bits (signs of zeros included) of the
-    numpy reference, on layers that hold back faces and emitters."""
+    numpy reference, on layers that hold back faces and emitters; in one run or split into runs on threads."""
+    monkeypatch.setattr(sv, "FRAGMENT_RUN_MIN", 64)
+    monkeypatch.setattr(sv.os, "cpu_count", lambda: threads)
     scene, tracer = _scene(name)
     w, h = 64, 36
     view = sv.LayerView(scene.camera.pose_at(T_S), scene.camera.fov_deg, w, h)
