@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+from contextlib import nullcontext
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -175,21 +176,87 @@ def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, 
     query, nxt = ((np.empty(n, np.int64), np.empty(n, np.float32), np.empty((n, 3), np.float32),
                    np.empty((n, 3), np.float32), np.empty(n, np.float32)) for _ in range(2))
     m = kern["_peel_first"](origins, dirs, shift, MAX_RAY_LENGTH, *query)
-    for k in range(layers):
-        idx, start, o, d, length = query
-        m_next = 0
-        for _ in range(max_skips):
+    # On a host tracer a large query is traced in runs (:data:`PEEL_RUNS`) and each run's hits are taken in on a
+    # worker while the next run is traced. The runs are taken in in order, each appending where the previous one
+    # stopped, so the queries and layers are those of whole queries.
+    host = getattr(tracer, "device", None) is None
+    with _Handoff() if host else nullcontext() as worker:
+        for k in range(layers):
+            idx, start, o, d, length = query
+            m_next = 0
+            for _ in range(max_skips):
+                if m == 0:
+                    break
+                skips = 0
+                split = worker is not None and m >= PEEL_SPLIT_MIN
+                bounds = np.round(np.array(PEEL_RUNS if split else (0.0, 1.0)) * m).astype(np.int64)
+                for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+                    h = tracer.intersect_local(np.ascontiguousarray(o[a:b].T) if soa else o[a:b], d[a:b],
+                                               length[a:b])
+                    if split and a > 0:
+                        skips, m_next = worker.result()
+                    # Run [a, b) is compacted to slots from ``skips`` on: below every slot it has still to read.
+                    args = (h.prim, h.t, h.u, h.v, idx[a:b], start[a:b], mask, use_keep, k, scale32, t_out, p_out,
+                            u_out, v_out, origins, dirs, shift, MAX_RAY_LENGTH, *(q[skips:] for q in query),
+                            k + 1 < layers, m_next, *nxt)
+                    if split and b < m:
+                        worker.start(_taken_in, kern["_peel_hits"], skips, args)
+                    else:
+                        taken, m_next = kern["_peel_hits"](*args)
+                        skips += taken
+                m = skips
+            query, nxt, m = nxt, query, m_next
             if m == 0:
                 break
-            h = tracer.intersect_local(np.ascontiguousarray(o[:m].T) if soa else o[:m], d[:m], length[:m])
-            m, m_next = kern["_peel_hits"](h.prim, h.t, h.u, h.v, idx[:m], start[:m], mask, use_keep, k, scale32,
-                                           t_out, p_out, u_out, v_out, origins, dirs, shift, MAX_RAY_LENGTH, *query,
-                                           k + 1 < layers, m_next, *nxt)
-        query, nxt, m = nxt, query, m_next
-        if m == 0:
-            break
     shp = (layers,) + tuple(shape) if shape is not None else (layers, n)
     return Layers(t_out.reshape(shp), p_out.reshape(shp), u_out.reshape(shp), v_out.reshape(shp))
+
+
+# Runs of a large peeling query (fractions of its rays): the hits of each run but the last are taken in on the
+# worker while the next run is traced; the last run is short, as its hits are taken in on the tracing thread. Below
+# PEEL_SPLIT_MIN rays a query stays whole (the hand-over costs more than the pass it would hide).
+PEEL_RUNS = (0.0, 0.45, 0.9, 1.0)
+PEEL_SPLIT_MIN = 1 << 15
+
+
+def _taken_in(peel_hits, skips, args):
+    taken, m_next = peel_hits(*args)
+    return skips + taken, m_next
+
+
+class _Handoff:
+    """One worker thread that runs one compiled pass at a time beside the caller's queries. :meth:`start` returns
+    once the worker has called the pass: the worker holds the GIL from taking the job until the pass releases it,
+    so the caller's next query (which holds the GIL throughout on embreex) cannot start before the pass is running
+    and shut it out."""
+
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="splitbench-peel")
+        self._called = threading.Event()
+        self._pending = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._pending is not None:
+            self._pending.exception()  # wait for a pass still running (its error, if any, was the caller's to see)
+        self._pool.shutdown()
+
+    def start(self, fn, *args) -> None:
+        def job():
+            self._called.set()
+            return fn(*args)
+
+        self._called.clear()
+        self._pending = self._pool.submit(job)
+        self._called.wait()
+
+    def result(self):
+        pending, self._pending = self._pending, None
+        return pending.result()
 
 
 def peel_reference(intersect, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None,

@@ -40,8 +40,16 @@ def _same_layers(a, b):
         assert x.dtype == y.dtype and np.array_equal(x, y), name
 
 
+@pytest.mark.parametrize("runs", [False, True])
 @pytest.mark.parametrize("restricted", [False, True])
-def test01_compiled_peeling_matches_the_numpy_reference(restricted):
+def test01_compiled_peeling_matches_the_numpy_reference(restricted, runs, monkeypatch):
+    """Compiled peeling gives the layers of the numpy reference, with its queries whole or traced in runs whose hits
+    a worker takes in while the next run is traced."""
+    if runs:
+        monkeypatch.setattr(sv, "PEEL_SPLIT_MIN", 16)
+        calls = []
+        start = sv._Handoff.start
+        monkeypatch.setattr(sv._Handoff, "start", lambda self, *a: (calls.append(1), start(self, *a))[1])
     scene, tracer = _scene("living_room")
     w, h = 40, 24
     view = sv.LayerView(scene.camera.pose_at(T_S), scene.camera.fov_deg, w, h)
@@ -56,6 +64,8 @@ def test01_compiled_peeling_matches_the_numpy_reference(restricted):
     got = sv.peel(tracer, o, d, 6, keep_mask=keep, shape=(h, w))
     _same_layers(ref, got)
     assert ref.valid.sum() > w * h            # more than one layer holds fragments
+    if runs:
+        assert len(calls) >= 2 * 6            # two runs on the worker per query, every layer
     # a keep callable still works (the reference path)
     if restricted:
         _same_layers(ref, sv.peel(tracer, o, d, 6, keep=lambda p: keep[p], shape=(h, w)))
