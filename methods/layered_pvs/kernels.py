@@ -245,6 +245,25 @@ def _past(t, scale32):
     return np.nextafter(t * scale32, np.float32(np.inf))
 
 
+def _path_moments(sample, direct, n, spp, illum, m1, m2):
+    """Per fragment ``i``: its ``spp`` path samples (rows ``k * n + i`` of ``sample``), each with the direct light
+    (float32) added, summed in sample order into the mean illumination (float32) and the first two moments of the
+    luminance ``(0.2126 r + 0.7152 g) + 0.0722 b`` (``server._path_moments_reference``'s bits)."""
+    for i in range(n):
+        d0, d1, d2 = np.float64(direct[i, 0]), np.float64(direct[i, 1]), np.float64(direct[i, 2])
+        a0 = a1 = a2 = s1 = s2 = 0.0
+        for k in range(spp):
+            r = k * n + i
+            x0, x1, x2 = sample[r, 0] + d0, sample[r, 1] + d1, sample[r, 2] + d2
+            lum = (x0 * 0.2126 + x1 * 0.7152) + x2 * 0.0722
+            if k == 0:  # the first sample as it is (a sum started at 0.0 would turn -0.0 into 0.0)
+                a0, a1, a2, s1, s2 = x0, x1, x2, lum, lum * lum
+            else:
+                a0, a1, a2, s1, s2 = a0 + x0, a1 + x1, a2 + x2, s1 + lum, s2 + lum * lum
+        illum[i, 0], illum[i, 1], illum[i, 2] = np.float32(a0 / spp), np.float32(a1 / spp), np.float32(a2 / spp)
+        m1[i], m2[i] = s1 / spp, s2 / spp
+
+
 def _peel_hits(prim, t, u, v, idx, start, keep_mask, use_keep, k, scale32, t_out, p_out, u_out, v_out, origins, dirs,
                shift, max_length, idx_out, start_out, o_out, d_out, len_out, queue_next, c_next, idx_nx, start_nx,
                o_nx, d_nx, len_nx):
@@ -371,7 +390,7 @@ def jit():
         global _offset_origin, _choose_light, _past, _queue_ray
         _offset_origin, _choose_light, _past, _queue_ray = j(_offset_origin), j(_choose_light), j(_past), j(_queue_ray)
         _compiled = {f.__name__: j(f) for f in (_bounce, _compact_hits, _shade_vertex, _add_unoccluded, _peel_hits,
-                                                 _peel_first, _shade_point_lights, _reproject_match,
+                                                 _peel_first, _shade_point_lights, _reproject_match, _path_moments,
                                                  _gather_fragments, _face_fragments)}
     return _compiled
 
@@ -395,6 +414,7 @@ def warm_up() -> None:
                            *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f32.copy(), f32.copy(),
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
+    k["_path_moments"](f64, f32, 1, 1, f32.copy(), one.copy(), one.copy())
     k["_shade_point_lights"](f64, f64, f64, f64, np.zeros((1, 1), np.bool_), 1.0, f32.copy())
     big = MAX_RAY_LENGTH
     peel_out = (i64.copy(), one32.copy(), f32.copy(), f32.copy(), one32.copy())

@@ -643,8 +643,9 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
             for f in pending:
                 f.result()
     # The primary fragment's direct light last: the same sums whatever order the parts ran in.
-    sample.reshape(spp, n, 3)[...] += direct.astype(np.float64)[None]
-    return _path_moments(sample, n, spp)
+    illum, m1, m2 = np.empty((n, 3), np.float32), np.empty(n), np.empty(n)
+    kernels.jit()["_path_moments"](sample, np.ascontiguousarray(direct, np.float32), n, spp, illum, m1, m2)
+    return illum, m1, m2
 
 
 # Parts of the path tracer's wavefront (row ranges with their own generators): two, so that one part shades while
@@ -660,14 +661,18 @@ def _path_parts(total: int, rng) -> list:
     return [(int(a), int(b), g) for a, b, g in zip(bounds[:-1], bounds[1:], rng.spawn(count))]
 
 
-def _path_moments(sample, n: int, spp: int):
-    """(mean illumination float32, first and second moments of its luminance) per fragment."""
-    lum_w = np.array([0.2126, 0.7152, 0.0722])
-    per = sample.reshape(spp, n, 3)
-    illum = per.sum(axis=0)
-    lum = per @ lum_w
-    m1 = lum.sum(axis=0)
-    m2 = (lum * lum).sum(axis=0)
+def _path_moments_reference(sample, direct, n: int, spp: int):
+    """(mean illumination float32, first and second moments of its luminance) per fragment, the direct light
+    (float32, per fragment) added to each of its ``spp`` samples (rows ``k * n + i``): the numpy expressions of
+    :func:`.kernels._path_moments`, the samples summed in their order and the luminance ``(0.2126 r + 0.7152 g) +
+    0.0722 b``."""
+    per = sample.reshape(spp, n, 3) + direct.astype(np.float64)[None]
+    lum = (per[..., 0] * 0.2126 + per[..., 1] * 0.7152) + per[..., 2] * 0.0722
+    illum, m1, m2 = per[0].copy(), lum[0].copy(), lum[0] * lum[0]
+    for k in range(1, spp):
+        illum += per[k]
+        m1 += lum[k]
+        m2 += lum[k] * lum[k]
     return (illum / spp).astype(np.float32), m1 / spp, m2 / spp
 
 
@@ -793,8 +798,7 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
                                       (seg * SHADOW_TMAX_SCALE).astype(np.float32))
                 lit = sel[~occ]
                 sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]
-    sample += np.tile(direct.astype(np.float64), (spp, 1))
-    return _path_moments(sample, n, spp)
+    return _path_moments_reference(sample, direct, n, spp)
 
 
 # ------------------------------------------------------------------------------------------ SVGF with layers
