@@ -838,6 +838,7 @@ def _svgf():
                    out_var):
             H, W, L = valid.shape
             h = (1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16)
+            int_n = int(sigma_n) if sigma_n == math.floor(sigma_n) and 0 < sigma_n <= 1024 else 0
             half = (H + 1) // 2
             radius = np.empty((5, 5))  # each tap's distance from the centre in taps
             for dy in range(-2, 3):
@@ -890,14 +891,26 @@ def _svgf():
                                 ndot = (nrm[y, x, k, 0] * nrm[yy, xx, best, 0] + nrm[y, x, k, 1] * nrm[yy, xx, best, 1]
                                         + nrm[y, x, k, 2] * nrm[yy, xx, best, 2])
                                 # max(ndot, 0) ** sigma_n, without the power where it is exactly 1 (half the taps:
-                                # equal normals) or 0; a zero weight adds nothing, so such a tap is skipped.
+                                # equal normals) or 0; a zero weight adds nothing, so such a tap is skipped. An
+                                # integer exponent (the default 128) by squarings rather than pow.
                                 if ndot <= 0.0:
                                     continue
-                                wn = 1.0 if ndot == 1.0 else ndot ** sigma_n
+                                if ndot == 1.0:
+                                    wn = 1.0
+                                elif int_n > 0:
+                                    wn, base, e = 1.0, ndot, int_n
+                                    while e:
+                                        if e & 1:
+                                            wn *= base
+                                        base *= base
+                                        e >>= 1
+                                else:
+                                    wn = ndot ** sigma_n
                                 dist_px = radius[dy + 2, dx + 2] * step
-                                wz = math.exp(-abs(best_pd) / (foot * (dist_px + 1.0) + 1e-12))
-                                wl = math.exp(-abs(lc - ln) / (sigma_l * sd + 1e-10))
-                                wgt = h[dy + 2] * h[dx + 2] * wn * wz * wl
+                                # The plane-distance and luminance weights exp(-a) exp(-b) as one exp(-(a + b)).
+                                wzl = math.exp(-(abs(best_pd) / (foot * (dist_px + 1.0) + 1e-12)
+                                                 + abs(lc - ln) / (sigma_l * sd + 1e-10)))
+                                wgt = h[dy + 2] * h[dx + 2] * wn * wzl
                                 wsum += wgt
                                 vsum += wgt * wgt * var[yy, xx, best]
                                 c0 += wgt * col[yy, xx, best, 0]
