@@ -5,8 +5,9 @@ Parts (``--parts``, default all), printed and stored in ``<results>/bench/quake_
 running anything:
 
 ``rays``
-    Rays per second of the two tracing stages against the backend's raw rate on the very same rays, medians of
-    ``--repeats`` calls of stage and raw in turn: the primary stage (G-buffer plus anti-aliased shading rays,
+    Rays per second of the tracing stages against the backend's raw rate on the very same rays, medians of
+    ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and
+    secondary stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus anti-aliased shading rays,
     attributes, overlays) against the raw closest-hit query on its two camera ray sets; the direct stage (light
     rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
     generated (captured from an untimed run); the secondary stage (mirror, glass and water chains to depth 5, all
@@ -46,6 +47,7 @@ PARTS = ("rays", "asvgf", "lights")
 DEFAULT_SCENE = "oa:aggressor@pak1-maps"
 FALLBACK_SCENE = "two_rooms"  # methods/quake_drt/testscenes.py, when the OpenArena data is missing
 SECONDARY_SCENE = "gallery"  # embedded: a mirror and glass in view, for the secondary stage of a scene without them
+SHORT_STAGE_REPEATS = 11  # the fewest repeats of the primary and secondary stages in part rays
 
 
 def _median_ms(fn, repeats: int):
@@ -137,9 +139,10 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
         for ro, rd, _, rlen in sets:
             tracer.raw_intersect(ro, rd, rlen.copy())  # embreex overwrites the lengths it is given
 
-    prim_ms, raw_prim_ms = _interleaved_ms(prim, raw_primary, repeats)  # interleaved: noise hits both alike
+    short = max(repeats, SHORT_STAGE_REPEATS)
+    prim_ms, raw_prim_ms = _interleaved_ms(prim, raw_primary, short)  # interleaved: noise hits both alike
     prim_rays = f.rays(prim)
-    out = {"primary": {"ms": prim_ms, "rays": prim_rays, "rays_per_s": prim_rays / (prim_ms / 1e3),
+    out = {"primary": {"ms": prim_ms, "repeats": short, "rays": prim_rays, "rays_per_s": prim_rays / (prim_ms / 1e3),
                        "raw_ms": raw_prim_ms, "raw_rays": raw_rays, "raw_rays_per_s": raw_rays / (raw_prim_ms / 1e3),
                        "ratio": (prim_rays / prim_ms) / (raw_rays / raw_prim_ms)}}
     raw = f.raw()
@@ -155,11 +158,11 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     else:
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
         raw_ms = float("nan")
-    out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3), "raw_ms": raw_ms,
+    out["direct"] = {"ms": dir_ms, "repeats": repeats, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3), "raw_ms": raw_ms,
                      "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
                      "ratio": (dir_rays / dir_ms) / (len(o_all) / raw_ms) if len(o_all) else float("nan"),
                      "shadow_rays": int(len(o_all))}
-    out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, repeats, backend)
+    out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, short, backend)
     return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
             "num_random_dl 0 (every culled light), antialiasing on", **out}
 
@@ -212,7 +215,7 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
     recorder = _RecordingTracer(tracer)
     result = stage(recorder)
     raw_rays = int(sum(len(d) for _, d, _ in recorder.rays))
-    entry = {"scene": scene.name, "rays_per_depth": [int(n) for n in result.rays_per_depth],
+    entry = {"scene": scene.name, "repeats": repeats, "rays_per_depth": [int(n) for n in result.rays_per_depth],
              "specular_pixels": int(len(np.unique(result.points.pixel))) if len(result.points) else 0}
     if raw_rays == 0:
         return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
@@ -419,14 +422,15 @@ def format_results(out: dict) -> str:
     if "rays" in out:
         r = out["rays"]
         lines.append(f"rays/s, stage vs raw {r['backend']}: scene {r['scene']} {r['resolution'][0]}x"
-                     f"{r['resolution'][1]}, median of {r['repeats']}")
+                     f"{r['resolution'][1]}, medians")
         for stage in ("primary", "secondary", "direct"):
             s = r.get(stage)
             if s is None:
                 continue
             where = f"   on {s['scene']}" if s.get("scene", r["scene"]) != r["scene"] else ""
             lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
-                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}{where}")
+                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}   "
+                         f"median of {s.get('repeats', r['repeats'])}{where}")
     if "asvgf" in out:
         r = out["asvgf"]
         lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")

@@ -477,11 +477,12 @@ def _bench_part(bench, files: SectionFiles) -> str:
     r = bench.get("rays")
     if r:
         rows = [{"stage": s, "scene": r[s].get("scene", r["scene"]), "rays": r[s]["rays"], "ms": r[s]["ms"],
-                 "rays/s": r[s]["rays_per_s"], "raw rays/s": r[s]["raw_rays_per_s"], "stage / raw": r[s]["ratio"]}
+                 "rays/s": r[s]["rays_per_s"], "raw rays/s": r[s]["raw_rays_per_s"], "stage / raw": r[s]["ratio"],
+                 "repeats": r[s].get("repeats", r["repeats"])}
                 for s in ("primary", "secondary", "direct") if s in r]
         t = pd.DataFrame(rows)
         out.append(_caption(r["scene"], r.get("backend", NOT_RECORDED), f"{r['resolution'][0]}x{r['resolution'][1]}",
-                            f", {r.get('settings', '')}, median of {r['repeats']}")
+                            f", {r.get('settings', '')}, medians of each stage's repeats")
                    + "<p>Bench: rays per second of the tracing stages against the backend's raw query on the same "
                      "rays (the secondary stage on a scene with mirrors and glass when the benchmark's level has "
                      "none; its scene column says where)." + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))

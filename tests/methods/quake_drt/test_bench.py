@@ -22,6 +22,8 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert sec["scene"] == bench.SECONDARY_SCENE and sec["specular_pixels"] > 0
     assert sec["raw_rays"] == sum(sec["rays_per_depth"]) > 0 and sec["rays"] >= sec["raw_rays"]
     assert math.isfinite(sec["ratio"]) and sec["ratio"] > 0
+    # the short stages take at least SHORT_STAGE_REPEATS calls; the direct stage the --repeats asked for
+    assert r["primary"]["repeats"] == sec["repeats"] == bench.SHORT_STAGE_REPEATS and r["direct"]["repeats"] == 1
     rows = {row["case"]: row for row in doc["lights"]["rows"]}
     assert rows["culled, all of the row"]["shadow_rays"] < rows["all lights, no culling"]["shadow_rays"]
     assert rows["culled, k = 1"]["shaded_per_point"] == 1.0
