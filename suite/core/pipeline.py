@@ -61,8 +61,9 @@ class SerialTracer:
     tracer, so the query always has a core of its own. Unbounded, three parts on two cores ran two parts' passes
     beside a query and the query's thread shared a core (the layered path tracer on Dabrovic Sponza 480x270, 4
     layers, Embree: 0.845 of the raw rate unbounded, 0.88 with one slot). With no more parts than cores the slots
-    only make a part that has finished its query wait for one (the two-part specular chains: 0.61 unbounded, 0.59
-    with one slot), and those parts run outside :meth:`part`."""
+    only make a part that has finished its query wait for one (the two-part specular chains on gallery 320x180, two
+    interleaved runs: 0.655 and 0.611 unbounded, 0.637 and 0.591 with one slot), and those parts run outside
+    :meth:`part`."""
 
     QUERIES = ("intersect", "occluded", "intersect_local", "occluded_local")
 
