@@ -30,6 +30,9 @@ from suite import fileio
 from suite.errors import UserError
 
 DEFAULT_RESOLUTIONS = ("160x90", "480x270", "960x540")
+# Rows of at most SMALL_ROW_PIXELS take at least SMALL_ROW_REPEATS updates: their stages last tens of milliseconds,
+# and a median of three of those moves with one slow update.
+SMALL_ROW_PIXELS, SMALL_ROW_REPEATS = 160 * 90, 7
 DEFAULT_PARAMS = {"update_fps": 5.5, "client_fps": 60.0, "max_in_flight": 1, "layers": 4, "full_layers": 1,
                   "tile": 8, "order": "block", "fov_enlarge": 1.1, "corner_speed": 0.02, "spp": 2, "max_depth": 4,
                   "rr_depth": 3, "denoise_iterations": 5, "relocation": True, "colour_fill": True,
@@ -182,7 +185,10 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
             replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
             stage_ms = {stage: [] for stage in SERVER_STAGES}
             raw_ms = {stage: [] for stage in SERVER_STAGES}
-            for _ in range(max(int(repeats), 1)):  # interleaved: machine noise hits both alike
+            reps = max(int(repeats), 1)
+            if res[0] * res[1] <= SMALL_ROW_PIXELS:
+                reps = max(reps, SMALL_ROW_REPEATS)
+            for _ in range(reps):  # interleaved: machine noise hits both alike
                 ctx, cctx, cli, _ = one_update(scene, tracer, p, res, t_s, t_s + 0.1)
                 for stage in SERVER_STAGES:
                     stage_ms[stage].append(ctx.stage_ms[stage])
@@ -195,7 +201,7 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
                     if n else float("nan")
                 ctx.stage_ms[stage] = float(np.median(stage_ms[stage]))
             n_rays = sum(per_stage[f"{s}_rays"] for s in SERVER_STAGES)
-            rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, "repeats": int(repeats),
+            rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, "repeats": reps,
                          "raw": "backend raw entry points" if replays["pvs"][2] else "suite queries (no raw entry)",
                          **per_stage, **{f"{k}_ms": round(v, 2) for k, v in ctx.stage_ms.items()},
                          "client_decode_ms": cctx.stage_ms.get("decode"), "client_peel_ms": cctx.stage_ms.get("peel"),
@@ -271,7 +277,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--resolutions", default=",".join(DEFAULT_RESOLUTIONS))
     ap.add_argument("--layers", default="2,4,8")
     ap.add_argument("--codec-size", type=int, default=512, help="side of the codec benchmark's mask (pixels)")
-    ap.add_argument("--repeats", type=int, default=3, help="timed updates per row (median), each after one recording")
+    ap.add_argument("--repeats", type=int, default=3, help="timed updates per row (median; at least "
+                    f"{SMALL_ROW_REPEATS} for rows of up to {SMALL_ROW_PIXELS} pixels), after one recording")
     ap.add_argument("--out", default="results")
     args = ap.parse_args(argv)
     if args.repeats < 1:

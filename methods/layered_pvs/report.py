@@ -262,6 +262,9 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
     bench = load_bench(METHOD, run_dirs, results_root)
     if bench:
         html.append(f"<h4>Bench ({esc(bench.get('scene'))}, {esc(bench.get('backend'))})</h4>")
+        goal = ratio_goal_text(bench.get("server", []))
+        if goal:
+            html.append(f"<p>{esc(goal)}</p>")
         for key in ("server", "codecs", "client"):
             if key in bench:
                 html.append(f"<p>{esc(key)}</p>" + table_html(pd.DataFrame(bench[key])))
@@ -272,3 +275,35 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
                 html.append(f"<figure><img src='{esc(link)}'><figcaption>{esc(name)} ({esc(bench.get('scene'))}, "
                             f"{esc(bench.get('backend'))})</figcaption></figure>")
     return "\n".join(html)
+
+
+# The issue's goal for the server stages' rays/s against the backend's raw rate on the same rays.
+RATIO_GOAL = 0.9
+BENCH_STAGES = ("pvs", "layers", "path_trace")
+
+
+def _pixels(resolution: str) -> int:
+    w, h = (int(v) for v in str(resolution).split("x"))
+    return w * h
+
+
+def ratio_goal_text(rows: list) -> str:
+    """One sentence per traced stage of the bench's server table: its stage/raw range, how many rows meet
+    :data:`RATIO_GOAL`, and the smallest size from which every row does (ratios grow with pixels)."""
+    parts = []
+    for stage in BENCH_STAGES:
+        got = [(r["resolution"], r[f"{stage}_ratio"]) for r in rows
+               if np.isfinite(r.get(f"{stage}_ratio", float("nan")))]
+        if not got:
+            continue
+        met = sum(v >= RATIO_GOAL for _, v in got)
+        sizes = sorted({res for res, _ in got}, key=_pixels)
+        from_size = next((res for i, res in enumerate(sizes)
+                          if all(v >= RATIO_GOAL for r, v in got if _pixels(r) >= _pixels(res))), None)
+        text = (f"{stage} {min(v for _, v in got):.3f}-{max(v for _, v in got):.3f} of raw, "
+                f"{met} of {len(got)} rows at >= {RATIO_GOAL}")
+        parts.append(text + (f" (every row from {from_size} up)" if from_size and met < len(got) else
+                             "" if met == len(got) else " (not at the largest size)"))
+    return ("Stage rays/s against the backend's raw rate on the same rays (goal >= " + f"{RATIO_GOAL}): "
+            + "; ".join(parts) + ".") if parts else ""
+

@@ -53,3 +53,21 @@ def test02_the_recorded_rays_are_the_ones_the_stage_traced():
     for (kind, ro, rd, rlen), (prim, t) in zip(rec.log, answers):
         again = tracer.intersect_local(ro.copy(), rd.copy(), rlen.copy())
         assert kind == "i" and np.array_equal(again.prim, prim) and np.array_equal(again.t, t)
+
+
+def test03_the_report_states_how_many_rows_meet_the_ratio_goal_and_from_which_size():
+    from methods.layered_pvs import report
+
+    def row(res, pvs, layers, path):
+        return {"resolution": res, "pvs_ratio": pvs, "layers_ratio": layers, "path_trace_ratio": path}
+
+    rows = [row("160x90", 0.95, 0.80, 0.70), row("160x90", 0.91, 0.85, 0.92), row("480x270", 0.97, 0.91, 0.89),
+            row("960x540", 0.99, 0.93, 0.93)]
+    text = report.ratio_goal_text(rows)
+    assert "pvs 0.910-0.990 of raw, 4 of 4 rows at >= 0.9;" in text
+    assert "layers 0.800-0.930 of raw, 2 of 4 rows at >= 0.9 (every row from 480x270 up)" in text
+    assert "path_trace 0.700-0.930 of raw, 2 of 4 rows at >= 0.9 (every row from 960x540 up)" in text
+    rows[-1]["path_trace_ratio"] = 0.85
+    assert "path_trace 0.700-0.920 of raw, 1 of 4 rows at >= 0.9 (not at the largest size)" in \
+        report.ratio_goal_text(rows)
+    assert report.ratio_goal_text([]) == ""
