@@ -142,3 +142,15 @@ def test05_streamed_runs_get_their_own_table_and_stay_out_of_the_thesis_claims(s
     assert t.iloc[0]["wire bytes/frame"] == pytest.approx(np.mean([4100, 4200, 4300]))  # frame 0 left out
     html = report.section(both, dirs + [d, d2], out_dir=tmp_path / "report", results_root=root)
     assert "Streamed placement" in html
+
+
+def test06_the_bench_table_says_which_stages_meet_the_ratio_goal():
+    from methods.quake_drt import report
+
+    rows = [{"stage": "primary", "stage / raw": 0.91}, {"stage": "secondary", "stage / raw": 0.6},
+            {"stage": "direct", "stage / raw": float("nan")}]
+    assert report._ratio_goal_text(rows) == ("Goal stage / raw >= 0.9: met by primary (0.910); not met by "
+                                             "secondary (0.600), direct (nan).")
+    assert report._ratio_goal_text(rows[:1]) == "Goal stage / raw >= 0.9: met by every stage (primary (0.910))."
+    assert report._ratio_goal_text(rows[1:2]).endswith("met by no stage (secondary (0.600)).")
+    assert report._ratio_goal_text([]) == ""
