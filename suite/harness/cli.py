@@ -192,6 +192,11 @@ def format_summary(out: dict) -> str:
              f"up {s['bandwidth_up_mbps']:.3f}; {s['bytes_down'] + s['bytes_up']} bytes)",
              f"  work         {s['rays']} rays   prepare {s['prepare_ms']:.1f} ms"
              + ("  (reused)" if s.get("prepare_reused") else "")]
+    if s["mode"] == "async" and "staleness_ms" not in s.get("stats", {}):
+        # No frame had an update in use (staleness is defined only then): the quality below is that of the
+        # client's picture before any update arrived.
+        lines.append(f"  note         no update reached the client in these {s['frames']} frames: it showed what it "
+                     f"had before one (run more frames)")
     for label, prefix in (("vs reference", ""), ("vs zero-latency", "zl_")):
         ssim = _stat(s, f"{prefix}ssim")
         if prefix and not s.get("zero_latency_run"):

@@ -143,3 +143,18 @@ def test10_bench_tracing_prints_suite_and_raw_rates_and_their_ratio(fake_core, c
     assert "ratio 0.500" in out
     code, _, err = _run(capsys, "bench", "tracing", "--scene", "toy", "--backend", "abacus")
     assert code == 2 and "unknown backend 'abacus'" in err
+
+
+def test11_an_async_run_that_no_update_reached_says_so():
+    """Staleness is defined only for frames with an update in use; an async run without any says plainly that
+    its client never received one, rather than printing a quality that looks like the method's."""
+    summary = {"resolution": [16, 8], "method": "m", "variant": "default", "mode": "async", "scene": "toy",
+               "frames": 30, "net": "wan-50m", "protocol": "tcp", "fps": 60.0, "bandwidth_mbps": 1.0,
+               "bandwidth_down_mbps": 1.0, "bandwidth_up_mbps": 0.0, "bytes_down": 10, "bytes_up": 0, "rays": 0,
+               "prepare_ms": 1.0, "stats": {"frame_ms": {"mean": 1.0, "p50": 1.0, "p95": 1.0}}}
+    out = {"summary": summary, "run_dir": "x", "skipped": False}
+    assert "no update reached the client in these 30 frames" in cli.format_summary(out)
+    summary["stats"]["staleness_ms"] = {"mean": 200.0, "p50": 200.0, "p95": 300.0}
+    assert "no update reached" not in cli.format_summary(out)
+    summary["mode"], summary["stats"] = "sync", {}
+    assert "no update reached" not in cli.format_summary(out)
