@@ -247,7 +247,7 @@ def _past(t, scale32):
 
 def _path_moments(sample, direct, n, spp, illum, m1, m2):
     """Per fragment ``i``: its ``spp`` path samples (rows ``k * n + i`` of ``sample``), each with the direct light
-    (float32) added, summed in sample order into the mean illumination (float32) and the first two moments of the
+    (float64) added, summed in sample order into the mean illumination (float32) and the first two moments of the
     luminance ``(0.2126 r + 0.7152 g) + 0.0722 b`` (``server._path_moments_reference``'s bits)."""
     for i in range(n):
         d0, d1, d2 = np.float64(direct[i, 0]), np.float64(direct[i, 1]), np.float64(direct[i, 2])
@@ -414,7 +414,7 @@ def warm_up() -> None:
                            *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f32.copy(), f32.copy(),
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
-    k["_path_moments"](f64, f32, 1, 1, f32.copy(), one.copy(), one.copy())
+    k["_path_moments"](f64, f64, 1, 1, f32.copy(), one.copy(), one.copy())
     k["_shade_point_lights"](f64, f64, f64, f64, np.zeros((1, 1), np.bool_), 1.0, f32.copy())
     big = MAX_RAY_LENGTH
     peel_out = (i64.copy(), one32.copy(), f32.copy(), f32.copy(), one32.copy())

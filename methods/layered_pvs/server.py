@@ -644,7 +644,7 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
                 f.result()
     # The primary fragment's direct light last: the same sums whatever order the parts ran in.
     illum, m1, m2 = np.empty((n, 3), np.float32), np.empty(n), np.empty(n)
-    kernels.jit()["_path_moments"](sample, np.ascontiguousarray(direct, np.float32), n, spp, illum, m1, m2)
+    kernels.jit()["_path_moments"](sample, np.ascontiguousarray(direct, np.float64), n, spp, illum, m1, m2)
     return illum, m1, m2
 
 
@@ -663,9 +663,9 @@ def _path_parts(total: int, rng) -> list:
 
 def _path_moments_reference(sample, direct, n: int, spp: int):
     """(mean illumination float32, first and second moments of its luminance) per fragment, the direct light
-    (float32, per fragment) added to each of its ``spp`` samples (rows ``k * n + i``): the numpy expressions of
-    :func:`.kernels._path_moments`, the samples summed in their order and the luminance ``(0.2126 r + 0.7152 g) +
-    0.0722 b``."""
+    (per fragment, taken as float64) added to each of its ``spp`` samples (rows ``k * n + i``): the numpy
+    expressions of :func:`.kernels._path_moments`, the samples summed in their order and the luminance
+    ``(0.2126 r + 0.7152 g) + 0.0722 b``."""
     per = sample.reshape(spp, n, 3) + direct.astype(np.float64)[None]
     lum = (per[..., 0] * 0.2126 + per[..., 1] * 0.7152) + per[..., 2] * 0.0722
     illum, m1, m2 = per[0].copy(), lum[0].copy(), lum[0] * lum[0]

@@ -6,15 +6,16 @@ running anything:
 
 ``rays``
     Rays per second of the tracing stages against the backend's raw rate on the very same rays, medians of
-    ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and
-    secondary stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus anti-aliased shading rays,
-    attributes, overlays) against the raw closest-hit query on its two camera ray sets; the direct stage (light
-    rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
-    generated (captured from an untimed run); the secondary stage (mirror, glass and water chains to depth 5, all
-    branches) against the raw closest-hit query on the continuation rays it traced (recorded in an untimed run).
-    The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena benchmark levels
-    have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry names the scene.
-    Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct stage has work.
+    ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and secondary
+    stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus
+    anti-aliased shading rays, attributes, overlays) against the raw closest-hit query on its two camera ray sets;
+    the direct stage (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion
+    query on the rays it generated (captured from an untimed run); the secondary stage (mirror, glass and water
+    chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced (recorded
+    in an untimed run). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
+    benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
+    names the scene. Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct
+    stage has work.
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
@@ -158,8 +159,8 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     else:
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
         raw_ms = float("nan")
-    out["direct"] = {"ms": dir_ms, "repeats": repeats, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3), "raw_ms": raw_ms,
-                     "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
+    out["direct"] = {"ms": dir_ms, "repeats": repeats, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3),
+                     "raw_ms": raw_ms, "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
                      "ratio": (dir_rays / dir_ms) / (len(o_all) / raw_ms) if len(o_all) else float("nan"),
                      "shadow_rays": int(len(o_all))}
     out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, short, backend)
