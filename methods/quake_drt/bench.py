@@ -15,7 +15,8 @@ running anything:
     in an untimed run). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
     benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
     names the scene. Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct
-    stage has work.
+    stage has work. ``by_pixels``: each stage's ms and ratio at that size and at the ``--rays-larger`` sizes (a
+    stage's fixed costs weigh less as the pixels grow).
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
@@ -370,12 +371,23 @@ def parser():
     ap.add_argument("--backend", default="embree")
     ap.add_argument("--resolution", default="320x180", help="rays and lights resolution")
     ap.add_argument("--resolutions", default="160x90,320x180,640x360", help="asvgf and lights-by-pixels resolutions")
+    ap.add_argument("--rays-larger", default="640x360", help="further sizes for part rays, comma-separated ('' for "
+                    "none): its ratios by pixels")
     ap.add_argument("--time", type=float, default=1.0, help="scene time of the benchmarked view, seconds")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="results", help="results root; the document goes to <out>/bench/")
     ap.add_argument("--no-store", action="store_true", help="print only")
     ap.add_argument("--json", action="store_true")
     return ap
+
+
+def ratios_row(rays: dict) -> dict:
+    """One row of part ``rays``'s ``by_pixels`` table: the resolution and each stage's ms and stage/raw ratio."""
+    row = {"resolution": list(rays["resolution"])}
+    for stage in ("primary", "secondary", "direct"):
+        if stage in rays:
+            row[f"{stage}_ms"], row[f"{stage}_ratio"] = rays[stage]["ms"], rays[stage]["ratio"]
+    return row
 
 
 def _resolutions(text: str):
@@ -410,6 +422,9 @@ def run(args) -> dict:
     if "rays" in parts:
         out["rays"] = {"backend": args.backend, **bench_rays(scene, tracer, res, args.time, args.repeats,
                                                                   args.backend)}
+        larger = [bench_rays(scene, tracer, r, args.time, args.repeats, args.backend)
+                  for r in _resolutions(args.rays_larger)]
+        out["rays"]["by_pixels"] = [ratios_row(r) for r in [out["rays"], *larger]]
     if "asvgf" in parts:
         out["asvgf"] = {"backend": args.backend, **bench_asvgf(scene, tracer, many, args.time, args.repeats)}
     if "lights" in parts:
@@ -432,6 +447,10 @@ def format_results(out: dict) -> str:
             lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
                          f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}   "
                          f"median of {s.get('repeats', r['repeats'])}{where}")
+        for row in r.get("by_pixels", [])[1:]:  # the first is the table above
+            lines.append(f"  at {row['resolution'][0]}x{row['resolution'][1]}: "
+                         + "   ".join(f"{st} {row[st + '_ratio']:.3f}" for st in ("primary", "secondary", "direct")
+                                      if st + "_ratio" in row))
     if "asvgf" in out:
         r = out["asvgf"]
         lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")

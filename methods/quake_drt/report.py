@@ -504,6 +504,11 @@ def _bench_part(bench, files: SectionFiles) -> str:
                      "rays (the secondary stage on a scene with mirrors and glass when the benchmark's level has "
                      "none; its scene column says where). " + esc(_ratio_goal_text(rows))
                    + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))
+        if len(r.get("by_pixels", [])) > 1:
+            bp = pd.DataFrame(r["by_pixels"])
+            bp["resolution"] = bp["resolution"].map(lambda v: f"{v[0]}x{v[1]}")
+            out.append("<p>The same stages by pixels (stage / raw and ms)." + files.csv(bp, "bench_rays_by_pixels.csv")
+                       + "</p>" + table_html(bp))
     a = bench.get("asvgf")
     if a:
         t = pd.DataFrame(a["rows"])

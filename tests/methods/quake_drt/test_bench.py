@@ -11,7 +11,7 @@ from methods.quake_drt import bench
 
 def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys):
     rc = bench.main(["--scene", "two_rooms", "--resolution", "48x27", "--resolutions", "32x18,48x27",
-                     "--repeats", "1", "--out", str(tmp_path)])
+                     "--rays-larger", "64x36", "--repeats", "1", "--out", str(tmp_path)])
     assert rc == 0
     doc = json.loads((tmp_path / "bench" / "quake_drt.json").read_text())
     assert {"rays", "asvgf", "lights", "packages", "host"} <= set(doc)
@@ -24,6 +24,12 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert math.isfinite(sec["ratio"]) and sec["ratio"] > 0
     # the short stages take at least SHORT_STAGE_REPEATS calls; the direct stage the --repeats asked for
     assert r["primary"]["repeats"] == sec["repeats"] == bench.SHORT_STAGE_REPEATS and r["direct"]["repeats"] == 1
+    # by pixels: this size's ratios, then the --rays-larger sizes'
+    small, larger = r["by_pixels"]
+    assert small["resolution"] == [48, 27] and larger["resolution"] == [64, 36]
+    assert small["primary_ratio"] == r["primary"]["ratio"] and small["secondary_ratio"] == sec["ratio"]
+    assert all(math.isfinite(row[f"{st}_ratio"]) and row[f"{st}_ms"] > 0 for row in (small, larger)
+               for st in ("primary", "secondary", "direct"))
     rows = {row["case"]: row for row in doc["lights"]["rows"]}
     assert rows["culled, all of the row"]["shadow_rays"] < rows["all lights, no culling"]["shadow_rays"]
     assert rows["culled, k = 1"]["shaded_per_point"] == 1.0
@@ -39,8 +45,8 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert large["denoiser_taps"] > small["denoiser_taps"]
     assert "A-SVGF" in capsys.readouterr().out
     # a second run of one part keeps the others
-    bench.main(["--scene", "two_rooms", "--parts", "rays", "--resolution", "32x18", "--repeats", "1",
-                "--out", str(tmp_path)])
+    bench.main(["--scene", "two_rooms", "--parts", "rays", "--resolution", "32x18", "--rays-larger", "",
+                "--repeats", "1", "--out", str(tmp_path)])
     doc2 = json.loads((tmp_path / "bench" / "quake_drt.json").read_text())
     assert doc2["asvgf"] == doc["asvgf"] and doc2["rays"]["resolution"] == [32, 18]
 

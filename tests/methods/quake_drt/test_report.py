@@ -67,6 +67,14 @@ def stored(tmp_path):
     bench = {"asvgf": {"scene": SCENE, "backend": "embree", "repeats": 3, "fit": {"ms_per_mp": 6000.0,
              "r2": 0.999, "exponent": 0.95},
              "rows": [{"resolution": [160, 90], "megapixels": 0.0144, "denoiser_ms": 99.0}]}}
+    def stage(ratio, **kw):
+        return {"rays": 1000, "ms": 2.0, "rays_per_s": 5e5, "raw_rays_per_s": 5e5 * ratio, "ratio": ratio,
+                "repeats": 11, **kw}
+
+    bench["rays"] = {"scene": SCENE, "backend": "embree", "resolution": [320, 180], "repeats": 3, "settings": "s",
+                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"), "direct": stage(0.99),
+                     "by_pixels": [{"resolution": [320, 180], "primary_ms": 2.0, "primary_ratio": 0.91},
+                                   {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}]}
     (tmp_path / "bench").mkdir()
     (tmp_path / "bench" / "quake_drt.json").write_text(json.dumps(bench))
     return frames, [d for d, _ in runs], tmp_path
@@ -112,6 +120,9 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
     claims = json.loads((out / "quake_drt" / "claims.json").read_text())
     assert {c["id"] for c in claims} >= {"001.culling_speedup", "001.denoiser_2ms"}
     assert (out / "quake_drt" / "bench_asvgf.csv").is_file()
+    assert "met by primary (0.910), direct (0.990); not met by secondary (0.600)" in html
+    by_pixels = (out / "quake_drt" / "bench_rays_by_pixels.csv").read_text()
+    assert "640x360" in by_pixels and (out / "quake_drt" / "bench_rays.csv").is_file()
 
 
 def test04_no_runs_no_bench_still_builds_and_every_claim_keeps_its_row(tmp_path):
