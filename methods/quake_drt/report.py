@@ -507,6 +507,8 @@ def _bench_part(bench, files: SectionFiles) -> str:
         if len(r.get("by_pixels", [])) > 1:
             bp = pd.DataFrame(r["by_pixels"])
             bp["resolution"] = bp["resolution"].map(lambda v: f"{v[0]}x{v[1]}")
+            stages = [s for s in ("primary", "secondary", "direct") if f"{s}_ratio" in bp]
+            bp = bp[["resolution"] + [f"{s}_{k}" for s in stages for k in ("ratio", "ms")]]
             out.append("<p>The same stages by pixels (stage / raw and ms)." + files.csv(bp, "bench_rays_by_pixels.csv")
                        + "</p>" + table_html(bp))
     a = bench.get("asvgf")
