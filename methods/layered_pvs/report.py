@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
 from suite.harness.reporting import SectionFiles, esc, load_bench, table_html
 from suite.harness.verdicts import Tolerance
@@ -277,8 +278,6 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
     return "\n".join(html)
 
 
-# The issue's goal for the server stages' rays/s against the backend's raw rate on the same rays.
-RATIO_GOAL = 0.9
 BENCH_STAGES = ("pvs", "layers", "path_trace")
 
 
@@ -289,21 +288,21 @@ def _pixels(resolution: str) -> int:
 
 def ratio_goal_text(rows: list) -> str:
     """One sentence per traced stage of the bench's server table: its stage/raw range, how many rows meet
-    :data:`RATIO_GOAL`, and the smallest size from which every row does (ratios grow with pixels)."""
+    :data:`RAY_RATE_GOAL`, and the smallest size from which every row does (ratios grow with pixels)."""
     parts = []
     for stage in BENCH_STAGES:
         got = [(r["resolution"], r[f"{stage}_ratio"]) for r in rows
                if np.isfinite(r.get(f"{stage}_ratio", float("nan")))]
         if not got:
             continue
-        met = sum(v >= RATIO_GOAL for _, v in got)
+        met = sum(v >= RAY_RATE_GOAL for _, v in got)
         sizes = sorted({res for res, _ in got}, key=_pixels)
         from_size = next((res for i, res in enumerate(sizes)
-                          if all(v >= RATIO_GOAL for r, v in got if _pixels(r) >= _pixels(res))), None)
+                          if all(v >= RAY_RATE_GOAL for r, v in got if _pixels(r) >= _pixels(res))), None)
         text = (f"{stage} {min(v for _, v in got):.3f}-{max(v for _, v in got):.3f} of raw, "
-                f"{met} of {len(got)} rows at >= {RATIO_GOAL}")
+                f"{met} of {len(got)} rows at >= {RAY_RATE_GOAL}")
         parts.append(text + (f" (every row from {from_size} up)" if from_size and met < len(got) else
                              "" if met == len(got) else " (not at the largest size)"))
-    return ("Stage rays/s against the backend's raw rate on the same rays (goal >= " + f"{RATIO_GOAL}): "
+    return ("Stage rays/s against the backend's raw rate on the same rays (goal >= " + f"{RAY_RATE_GOAL}): "
             + "; ".join(parts) + ".") if parts else ""
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
 from suite.harness.reporting import SectionFiles, load_bench, esc, table_html
 from suite.harness.verdicts import Claim, Tolerance
@@ -470,16 +471,13 @@ def _images(df: pd.DataFrame, run_dirs, files: SectionFiles) -> str:
     return "<div class='images'>" + "".join(cells) + "</div>" if cells else ""
 
 
-RATIO_GOAL = 0.9  # the issue's goal for a stage's rays/s against the backend's raw rate on the same rays
-
-
 def _ratio_goal_text(rows: list) -> str:
-    """Which stages of the bench's rays table meet :data:`RATIO_GOAL` and which do not, with their ratios."""
-    ok = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if r["stage / raw"] >= RATIO_GOAL]
-    short = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if not r["stage / raw"] >= RATIO_GOAL]
+    """Which stages of the bench's rays table meet :data:`RAY_RATE_GOAL` and which do not, with their ratios."""
+    ok = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if r["stage / raw"] >= RAY_RATE_GOAL]
+    short = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if not r["stage / raw"] >= RAY_RATE_GOAL]
     if not rows:
         return ""
-    head = f"Goal stage / raw >= {RATIO_GOAL}: "
+    head = f"Goal stage / raw >= {RAY_RATE_GOAL}: "
     if not short:
         return head + f"met by every stage ({', '.join(ok)})."
     if not ok:

@@ -267,22 +267,9 @@ def _max0(x):
     return x if (x >= 0.0 or x != x) else 0.0
 
 
-@_inline
-def _fresnel_conductor1(cos_i, eta_r, eta_i):
-    """:func:`suite.core.bsdf.fresnel_conductor` of one channel, its operations in their order."""
-    c2 = cos_i * cos_i
-    s2 = 1.0 - c2
-    s4 = s2 * s2
-    temp_1 = eta_r * eta_r - eta_i * eta_i - s2
-    a_2_pb_2 = np.sqrt(_max0(temp_1 * temp_1 + 4.0 * eta_i * eta_i * eta_r * eta_r))
-    a = np.sqrt(_max0(0.5 * (a_2_pb_2 + temp_1)))
-    term_1 = a_2_pb_2 + c2
-    term_2 = 2.0 * cos_i * a
-    r_s = (term_1 - term_2) / (term_1 + term_2)
-    term_3 = a_2_pb_2 * c2 + s4
-    term_4 = term_2 * s2
-    r_p = r_s * (term_3 - term_4) / (term_3 + term_4)
-    return 0.5 * (r_s + r_p)
+# Mitsuba's conductor Fresnel term, the one expression of :func:`suite.core.bsdf.fresnel_conductor`, compiled for one
+# channel (np.maximum and np.sqrt of scalars: the numpy operations in their order, so the bits of the reference).
+_fresnel_conductor1 = _inline(fresnel_conductor)
 
 
 @_inline

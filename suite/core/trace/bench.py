@@ -35,6 +35,9 @@ from suite.core.trace.base import as_rays
 from suite.core.trace.robust import offset_ray_origin
 
 
+# The goal for a pass's rays/s against the backend's raw rate on the same rays (tracing, method stages).
+RAY_RATE_GOAL = 0.9
+
 def shadow_rays(scene, resolution=(320, 180), t_s: float = 0.5):
     """Realistic shadow rays: from every visible pixel of the camera's view to every point light."""
     tracer = make("embree", scene)
