@@ -27,6 +27,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from suite import fileio
+from suite.core.trace.recording import RecordingTracer
 from suite.errors import UserError
 
 DEFAULT_RESOLUTIONS = ("160x90", "480x270", "960x540")
@@ -40,51 +41,6 @@ DEFAULT_PARAMS = {"update_fps": 5.5, "client_fps": 60.0, "max_in_flight": 1, "la
                   "subset_peeling": False, "key_interval": 10, "depth_tol": 0.01, "hole_fill": False,
                   "exposure": 1.0}
 SERVER_STAGES = ("pvs", "layers", "path_trace")
-
-
-class RecordingTracer:
-    """Wraps a tracer: forwards every query and keeps its rays in the tracing frame, ready to replay on the raw
-    backend (``("i" | "o", origins (N, 3), directions, lengths)``). Exposes ``occluded_local`` and
-    ``intersect_local`` exactly when the wrapped tracer does, so the method takes the same code path as with the
-    plain tracer."""
-
-    def __init__(self, tracer):
-        self.t = tracer
-        self.scene, self.shift, self.counters = tracer.scene, getattr(tracer, "shift", None), tracer.counters
-        self.soa_origins = bool(getattr(tracer, "soa_origins", False))
-        self.log = []
-        if hasattr(tracer, "occluded_local"):
-            self.occluded_local = self._occluded_local
-        if hasattr(tracer, "intersect_local"):
-            self.intersect_local = self._intersect_local
-
-    def _keep(self, kind, o, d, tmin, tmax):
-        from suite.core.trace.base import as_rays
-
-        ro, rd, _, rlen = as_rays(o, d, tmin, tmax, self.shift)  # fresh origins and lengths (no scratch buffers)
-        self.log.append((kind, ro, np.array(rd), rlen))  # the directions may be the caller's own array
-
-    def intersect(self, o, d, tmin=0.0, tmax=np.inf):
-        self._keep("i", o, d, tmin, tmax)
-        return self.t.intersect(o, d, tmin, tmax)
-
-    def occluded(self, o, d, tmin=0.0, tmax=np.inf):
-        self._keep("o", o, d, tmin, tmax)
-        return self.t.occluded(o, d, tmin, tmax)
-
-    def _keep_local(self, kind, o, d, length):
-        # Copies: the caller may reuse its buffers for its next query (depth peeling does), and the backend
-        # overwrites lengths.
-        self.log.append((kind, np.array(o.T if self.soa_origins else o, np.float32, order="C"),
-                         np.array(d, np.float32, order="C"), np.array(length, np.float32, order="C")))
-
-    def _occluded_local(self, o, d, length):
-        self._keep_local("o", o, d, length)
-        return self.t.occluded_local(o, d, length)
-
-    def _intersect_local(self, o, d, length):
-        self._keep_local("i", o, d, length)
-        return self.t.intersect_local(o, d, length)
 
 
 class LocalContext:

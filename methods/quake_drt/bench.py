@@ -43,6 +43,7 @@ import numpy as np
 from methods.quake_drt import asvgf as asvgf_mod
 from methods.quake_drt import culling, direct
 from methods.quake_drt import pipeline as pl
+from suite.core.trace.recording import RecordingTracer
 
 SCHEMA_VERSION = 1
 PARTS = ("rays", "asvgf", "lights")
@@ -169,26 +170,6 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
             "num_random_dl 0 (every culled light), antialiasing on", **out}
 
 
-class _RecordingTracer:
-    """Forwards every closest-hit query to ``tracer`` and keeps its rays in the tracer's frame and layout, ready for
-    ``raw_intersect``. The secondary stage queries only ``intersect`` (directly or through ``walk_past``)."""
-
-    def __init__(self, tracer):
-        self.tracer, self.rays = tracer, []
-
-    def intersect(self, o, d, tmin=0.0, tmax=np.inf):
-        from suite.core.trace.base import as_rays
-
-        ro, rd, _, rlen = as_rays(o, d, tmin, tmax, self.tracer.shift)
-        self.rays.append((ro, np.array(rd), rlen))  # fresh arrays: the stage may reuse its own
-        return self.tracer.intersect(o, d, tmin, tmax)
-
-    def __getattr__(self, name):
-        if name in ("occluded", "intersect_local", "occluded_local"):  # not reached through to the tracer unrecorded
-            raise AttributeError(name)
-        return getattr(self.tracer, name)
-
-
 def _has_specular(scene) -> bool:
     return any(m.is_specular for m in scene.materials)
 
@@ -214,20 +195,18 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
         return secondary.secondary_stage(scene, tr, t_s, surf, seeds, s.max_depth, s.all_branches,
                                          s.glossy_reflections, s.glossy_cone_deg, skip)
 
-    recorder = _RecordingTracer(tracer)
+    # The device as the stage finds it on the plain tracer: the same code path (the secondary stage asks only for
+    # closest hits, directly or through walk_past).
+    recorder = RecordingTracer(tracer, device=True)
     result = stage(recorder)
-    raw_rays = int(sum(len(d) for _, d, _ in recorder.rays))
+    raw_rays = recorder.rays
     entry = {"scene": scene.name, "repeats": repeats, "rays_per_depth": [int(n) for n in result.rays_per_depth],
              "specular_pixels": int(len(np.unique(result.points.pixel))) if len(result.points) else 0}
     if raw_rays == 0:
         return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
                 "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
 
-    def raw_secondary():
-        for ro, rd, rlen in recorder.rays:
-            tracer.raw_intersect(ro, rd, rlen.copy())  # embreex overwrites the lengths it is given
-
-    ms, raw_ms = _interleaved_ms(stage, raw_secondary, repeats)
+    ms, raw_ms = _interleaved_ms(stage, recorder.replay, repeats)
     rays = f.rays(stage)  # backend queries: the continuation rays and any alpha walk past transparent texels
     return {**entry, "ms": ms, "rays": rays, "rays_per_s": rays / (ms / 1e3), "raw_ms": raw_ms, "raw_rays": raw_rays,
             "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
@@ -337,26 +316,15 @@ def bench_path(results_root) -> Path:
 
 
 def load(results_root) -> dict | None:
-    import json
+    from suite.harness.reporting import load_bench
 
-    path = bench_path(results_root)
-    try:
-        return json.loads(path.read_text()) if path.is_file() else None
-    except (OSError, ValueError):
-        return None
+    return load_bench("quake_drt", None, results_root)
 
 
 def store(results_root, parts: dict) -> Path:
-    from suite.harness import results
-    from suite.harness.cli import bench_document
+    from suite.harness.cli import store_bench
 
-    path = bench_path(results_root)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = load(results_root) or {}
-    doc.update(parts)
-    doc["schema_version"] = SCHEMA_VERSION
-    results.write_json(path, bench_document(doc))
-    return path
+    return store_bench("quake_drt", results_root, parts, SCHEMA_VERSION)
 
 
 # ------------------------------------------------------------------------------------------------------ CLI

@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from suite.core.trace.recording import RecordingTracer
+
 SCHEMA_VERSION = 1
 PARTS = ("shading", "reconstruction", "serving", "figures")
 FIGURE_FRAMES = (24, 36, 48, 60)
@@ -41,15 +43,9 @@ FIGURE_FRAMES = (24, 36, 48, 60)
 
 def store(results_root, parts: dict) -> Path:
     """Merges ``parts`` into ``<results>/bench/rail.json`` (with the environment a run records) atomically."""
-    from suite.harness import results
-    from suite.harness.cli import bench_document
-    from suite.harness.reporting import load_bench
+    from suite.harness.cli import store_bench
 
-    path = Path(results_root) / "bench" / "rail.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {**(load_bench("rail", None, results_root) or {}), **parts, "schema_version": SCHEMA_VERSION}
-    results.write_json(path, bench_document(doc))
-    return path
+    return store_bench("rail", results_root, parts, SCHEMA_VERSION)
 
 
 def _params(**overrides) -> dict:
@@ -73,21 +69,6 @@ def _prepare(scene, tracer, **overrides):
     return _PREPARED[key]
 
 
-class _RecordingTracer:
-    """Passes every query to the tracer and keeps the shadow rays, so the raw backend can trace the same ones."""
-
-    def __init__(self, tracer):
-        self._t = tracer
-        self.rays = []
-
-    def occluded(self, o, d, tmin=0.0, tmax=np.inf):
-        self.rays.append((np.asarray(o), np.asarray(d), np.asarray(tmax)))
-        return self._t.occluded(o, d, tmin, tmax)
-
-    def __getattr__(self, name):
-        return getattr(self._t, name)
-
-
 def _one_pass(scene, tracer, prep, n_paths: int, seed: int = 0, clamp: float = 0.5):
     from methods.rail.lighting import shade_points, trace_light_paths
 
@@ -99,21 +80,17 @@ def _one_pass(scene, tracer, prep, n_paths: int, seed: int = 0, clamp: float = 0
     return len(vpls), counters
 
 
-def _raw_rate(tracer, rays, repeats: int) -> float | None:
-    if not hasattr(tracer, "raw_occluded") or not rays:
+def _raw_rate(recorder, repeats: int) -> float | None:
+    """Rays/s of the backend's raw entry points on the rays ``recorder`` (a RecordingTracer) kept; None without
+    them."""
+    if not hasattr(recorder.tracer, "raw_occluded") or not recorder.log:
         return None
-    from suite.core.trace.base import as_rays
-
-    batches = [as_rays(o.astype(np.float32), d.astype(np.float32), 0.0, np.asarray(t, np.float32), tracer.shift)
-               for o, d, t in rays]
-    n = sum(len(b[1]) for b in batches)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        for ro, rd, _, rlen in batches:
-            tracer.raw_occluded(ro, rd, rlen)
+        recorder.replay()
         times.append(time.perf_counter() - t0)
-    return n / float(np.median(times))
+    return recorder.rays / float(np.median(times))
 
 
 def bench_shading(scene, tracer, targets, paths, repeats: int) -> dict:
@@ -123,13 +100,13 @@ def bench_shading(scene, tracer, targets, paths, repeats: int) -> dict:
         prep, prep_ms = _prepare(scene, tracer, target_points=int(target))
         for n_paths in (paths if target == targets[len(targets) // 2] else [base_paths]):
             times, counters, n_vpl = [], None, 0
-            rec = _RecordingTracer(tracer)
+            rec = RecordingTracer(tracer)
             for r in range(repeats):
                 t0 = time.perf_counter()
                 n_vpl, counters = _one_pass(scene, rec if r == 0 else tracer, prep, int(n_paths), seed=r)
                 times.append(time.perf_counter() - t0)
             t = float(np.median(times))
-            raw = _raw_rate(tracer, rec.rays, repeats)
+            raw = _raw_rate(rec, repeats)
             rows.append({"target_points": int(target), "points": len(prep["points"]), "light_paths": int(n_paths),
                          "vpls": int(n_vpl), "pass_ms": 1e3 * t, "pairs": counters["pairs"],
                          "shadow_rays": counters["rays"], "pairs_per_s": counters["pairs"] / t,

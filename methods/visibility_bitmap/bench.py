@@ -40,6 +40,7 @@ import numpy as np
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs
+from suite.core.trace.recording import RecordingTracer
 
 DEFAULT_CODECS = ("none", "lzo", "lz4", "zstd", "zstd:9", "bitplane+lz4", "bitplane+zstd", "delta+lz4", "delta+zstd",
                   "delta+bitplane+zstd", "h264", "bitplane+h264")
@@ -152,30 +153,6 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
 
 # ------------------------------------------------------------------------------------------------ throughput
 
-class _RecordingTracer:
-    """Forwards shadow-ray queries to a tracer and keeps the exact rays the backend received (in its frame, as
-    (N, 3) arrays: the raw entry points' layout), so the raw backend can be timed on the same rays."""
-
-    def __init__(self, tracer):
-        self.tracer = tracer
-        self.shift = getattr(tracer, "shift", None)
-        self.soa_origins = getattr(tracer, "soa_origins", False)
-        self.counters = tracer.counters
-        self.rays: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def occluded_local(self, o, d, length):
-        o_rows = np.ascontiguousarray(o.T if self.soa_origins else o)
-        self.rays.append((o_rows, d.copy(), length.copy()))  # the caller reuses its buffers
-        return self.tracer.occluded_local(o, d, length)
-
-    def occluded(self, origins, dirs, tmin=0.0, tmax=np.inf):
-        from suite.core.trace.base import as_rays
-
-        o, d, _, length = as_rays(origins, dirs, tmin, tmax, self.shift)
-        self.rays.append((o.copy(), d.copy(), length.copy()))  # the caller may reuse its buffers
-        return self.tracer.occluded(origins, dirs, tmin, tmax)
-
-
 def _timed(fn) -> float:
     t0 = time.perf_counter()
     fn()
@@ -201,17 +178,14 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
         raise NotImplementedError(f"backend {getattr(tracer, 'name', '?')} has no raw entry point")
     g = render_gbuffer(scene, tracer, t_s, resolution=tuple(resolution))
     lights = scene.lights_at(t_s)
-    recorder = _RecordingTracer(tracer)
+    recorder = RecordingTracer(tracer)
     visibility_pass(g, lights, recorder, layout)
-    rays = int(sum(len(d) for _, d, _ in recorder.rays))
+    rays = recorder.rays
 
     def stage():
         visibility_pass(g, lights, tracer, layout)
 
-    def raw():
-        for o, d, length in recorder.rays:
-            tracer.raw_occluded(o, d, length)
-
+    raw = recorder.replay
     stage(), raw()  # warm-up (page faults, caches)
     stage_s, raw_s = [], []
     for _ in range(max(repeats, 1)):  # interleaved: machine noise hits both alike
@@ -367,29 +341,18 @@ def bench_path(results_root) -> Path:
 
 def load(results_root) -> dict | None:
     """The stored benchmark document under ``results_root``, or None (read-only; used by the report)."""
-    path = bench_path(results_root)
-    if not path.is_file():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
+    from suite.harness.reporting import load_bench
+
+    return load_bench(BENCH_FILE.removesuffix(".json"), None, results_root)
 
 
 def store(results_root, parts: dict) -> Path:
     """Merges ``parts`` into the stored document and returns its path. The document records the environment a
     run records in its config.json (package versions, host, git commit; :func:`suite.harness.cli.bench_document`)
     and is written atomically."""
-    from suite.harness import results
-    from suite.harness.cli import bench_document
+    from suite.harness.cli import store_bench
 
-    path = bench_path(results_root)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = load(results_root) or {}
-    doc.update(parts)
-    doc["schema_version"] = SCHEMA_VERSION
-    results.write_json(path, bench_document(doc))
-    return path
+    return store_bench(BENCH_FILE.removesuffix(".json"), results_root, parts, SCHEMA_VERSION)
 
 
 # ---------------------------------------------------------------------------------------------------- CLI
