@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from suite.core.gbuffer import surface_attributes
@@ -174,27 +175,164 @@ def shade_points(points: np.ndarray, normals: np.ndarray, vpls: PathVertices, tr
     from q (offset along its normal) to the VPL is unblocked. Distances under ``clamp_m`` are clamped (the usual
     many-lights bound on the 1/d² singularity; it removes energy near corners). Returns (E, counters:
     ``pairs`` = VPL·point pairs, ``rays`` = shadow rays traced).
+
+    The pairs are summed in batches of whole VPLs against every point (at most ``batch`` pairs, at least one VPL):
+    each batch's contributions per point, then the batch added to E. Their shadow rays go in steps of about
+    :data:`STEP_PAIRS` pairs, pipelined (:func:`suite.core.pipeline.pipelined`): while the backend traces one step's
+    rays, a worker makes the next step's (one compiled pass, :func:`_pair_rays`) and adds up a traced one's
+    (:func:`_accumulate`), so the pass costs little more than its queries. The result has the bits of
+    :func:`shade_points_reference` (the batches' whole-array numpy expressions): the same rays, and per point the
+    same contributions added in the same order.
     """
+    import threading
+    from functools import partial
+
+    from suite.core.pipeline import local_rays, pipelined
+
+    E, counters, inputs = _shading_inputs(points, normals, vpls, tracer)
+    if inputs is None:
+        return E, counters
+    q_origin, qn, v_pos, intensity = inputs
+    n_pts, n_vpl = len(q_origin), len(v_pos)
+    v_normal = np.ascontiguousarray(vpls.normal, np.float64)
+    # Steps of whole VPLs (about STEP_PAIRS pairs) within the reference's batches: per point, the contributions still
+    # come in VPL order, so summing the steps of a batch one after the other gives the batch's sums.
+    per = max(1, int(batch) // n_pts)
+    step = max(1, min(per, STEP_PAIRS // n_pts))
+    steps = [(v0, min(n_vpl, v0 + step, b0 + per), min(n_vpl, v0 + step, b0 + per) == min(n_vpl, b0 + per))
+             for b0 in range(0, n_vpl, per) for v0 in range(b0, min(n_vpl, b0 + per), step)]
+    rays = [0] * len(steps)
+    made, blocked = {}, {}
+    order = threading.Condition()
+    # the next step to add up, the open batch's sums, whether a step failed
+    state = {"next": 0, "sums": np.zeros((n_pts, 3)), "failed": False}
+
+    def make(k):
+        v0, v1, _ = steps[k]
+        m = n_pts * (v1 - v0)
+        o, d, tmax = np.empty((m, 3)), np.empty((m, 3), np.float32), np.empty(m)
+        q_idx, v_idx, g = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m)
+        count = _pair_rays(q_origin, qn, v_pos, v_normal, v0, v1, SHADOW_TMAX_SCALE, float(clamp_m) ** 2, o, d, tmax,
+                           q_idx, v_idx, g)
+        rays[k] = count
+        o, d, tmax = o[:count], d[:count], tmax[:count]
+        made[k] = (o, d, tmax, local_rays(tracer, o, d, tmax) if count else None, q_idx[:count], v_idx[:count],
+                   g[:count])
+
+    def trace(k):
+        o, d, tmax, query = made[k][:4]
+        if rays[k]:
+            blocked[k] = tracer.occluded(o, d, 0.0, tmax) if query is None else tracer.occluded_local(*query)
+
+    def finish(k):
+        q_idx, v_idx, g = made.pop(k)[4:]
+        with order:  # in step order (once every step is traced, finishes run on two threads)
+            order.wait_for(lambda: state["next"] == k or state["failed"])
+            if state["failed"]:  # an earlier step's error, which the pipeline raises
+                return
+            try:
+                if rays[k]:
+                    _accumulate(np.ascontiguousarray(blocked.pop(k), np.bool_), q_idx, v_idx, g, intensity,
+                                state["sums"])
+                if steps[k][2]:  # the batch's last step: its sums go to E
+                    E[...] += state["sums"]
+                    state["sums"][...] = 0.0
+            except BaseException:
+                state["failed"] = True
+                raise
+            finally:
+                state["next"] = k + 1
+                order.notify_all()
+
+    pipelined([(partial(make, k), partial(trace, k), partial(finish, k)) for k in range(len(steps))])
+    counters["rays"] = int(sum(rays))
+    return E, counters
+
+
+# VPL·point pairs per pipeline step of shade_points (whole VPLs): small enough that the backend starts at once and
+# the last step's sums are quick, large enough that a step's Python costs little beside its query.
+STEP_PAIRS = 1 << 15
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_rays(q_origin, qn, v_pos, v_normal, v0, v1, tmax_scale, clamp2, o, d, tmax, q_idx, v_idx, g):
+    """The shadow rays of the pairs (every point, VPLs v0:v1) whose cosines are both positive, in
+    :func:`shade_points_reference`'s order (point-major, as ``np.nonzero``): origin, float32 direction, tmax, the
+    pair and its geometry term ``cos θ_q cos θ_v / max(d², clamp²)``, with the reference's float64 operations in
+    their order (:func:`_dot3`'s sums). Returns how many."""
+    count = 0
+    for i in range(q_origin.shape[0]):
+        for j in range(v0, v1):
+            tx = v_pos[j, 0] - q_origin[i, 0]
+            ty = v_pos[j, 1] - q_origin[i, 1]
+            tz = v_pos[j, 2] - q_origin[i, 2]
+            d2 = (tx * tx + tz * tz) + ty * ty
+            dist = np.sqrt(max(d2, 1e-300))
+            wx, wy, wz = tx / dist, ty / dist, tz / dist
+            cos_q = (wx * qn[i, 0] + wz * qn[i, 2]) + wy * qn[i, 1]
+            cos_v = -((wx * v_normal[j, 0] + wz * v_normal[j, 2]) + wy * v_normal[j, 1])
+            if not (cos_q > 0.0 and cos_v > 0.0):
+                continue
+            o[count, 0], o[count, 1], o[count, 2] = q_origin[i, 0], q_origin[i, 1], q_origin[i, 2]
+            d[count, 0], d[count, 1], d[count, 2] = np.float32(wx), np.float32(wy), np.float32(wz)
+            tmax[count] = dist * tmax_scale
+            q_idx[count], v_idx[count] = i, j
+            g[count] = cos_q * cos_v / max(d2, clamp2)
+            count += 1
+    return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(blocked, q_idx, v_idx, g, intensity, sums):
+    """``sums[q] += g * I_v`` for every unblocked pair, in ray order (``np.bincount``'s sums, channel by channel)."""
+    for r in range(g.shape[0]):
+        if blocked[r]:
+            continue
+        i, j = q_idx[r], v_idx[r]
+        for c in range(3):
+            sums[i, c] += g[r] * intensity[j, c]
+
+
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products over the last axis summed as (x + z) + y: ``np.einsum``'s order for three terms here, written
+    out so that the compiled pass (:func:`_pair_rays`) can follow it."""
+    return (a[..., 0] * b[..., 0] + a[..., 2] * b[..., 2]) + a[..., 1] * b[..., 1]
+
+
+def _shading_inputs(points, normals, vpls: PathVertices, tracer):
+    """(E = 0 per point, counters, inputs) of a shading pass; inputs, None without points or VPLs: the points' ray
+    origins (offset along their normals, float64 world space), their normals, the VPLs' offset positions and their
+    intensity over cos θ_v (I_v / cos θ_v = Φ ρ/π), contiguous."""
     n_pts, n_vpl = len(points), len(vpls)
     E = np.zeros((n_pts, 3), np.float64)
     counters = {"pairs": n_pts * n_vpl, "rays": 0}
     if n_pts == 0 or n_vpl == 0:
-        return E, counters
+        return E, counters, None
     shift = getattr(tracer, "shift", None)
-    q = np.asarray(points, np.float64)
-    qn = np.asarray(normals, np.float64)
-    q_origin = offset_ray_origin(q, qn, shift)
-    v_pos = offset_ray_origin(vpls.position, vpls.normal, shift)
-    intensity = vpls.flux * vpls.albedo * INV_PI     # I_v / cos θ_v
+    qn = np.ascontiguousarray(normals, np.float64)
+    q_origin = np.ascontiguousarray(offset_ray_origin(np.asarray(points, np.float64), qn, shift))
+    v_pos = np.ascontiguousarray(offset_ray_origin(vpls.position, vpls.normal, shift))
+    return E, counters, (q_origin, qn, v_pos, np.ascontiguousarray(vpls.flux * vpls.albedo * INV_PI))
+
+
+def shade_points_reference(points: np.ndarray, normals: np.ndarray, vpls: PathVertices, tracer,
+                           clamp_m: float, batch: int = PAIR_BATCH) -> tuple[np.ndarray, dict]:
+    """:func:`shade_points` as whole-array numpy expressions per batch, one batch after the other (the reference
+    its compiled passes and pipeline are tested against)."""
+    E, counters, inputs = _shading_inputs(points, normals, vpls, tracer)
+    if inputs is None:
+        return E, counters
+    q_origin, qn, v_pos, intensity = inputs
+    n_pts, n_vpl = len(q_origin), len(v_pos)
     per = max(1, int(batch) // n_pts)
     for v0 in range(0, n_vpl, per):
         vs = slice(v0, min(n_vpl, v0 + per))
         to_v = v_pos[None, vs, :] - q_origin[:, None, :]            # (N, B, 3)
-        d2 = np.einsum("nbc,nbc->nb", to_v, to_v)
+        d2 = _dot3(to_v, to_v)
         dist = np.sqrt(np.maximum(d2, 1e-300))
         w = to_v / dist[..., None]
-        cos_q = np.einsum("nbc,nc->nb", w, qn)
-        cos_v = -np.einsum("nbc,bc->nb", w, vpls.normal[vs])
+        cos_q = _dot3(w, qn[:, None, :])
+        cos_v = -_dot3(w, vpls.normal[None, vs])
         front = (cos_q > 0) & (cos_v > 0)
         qi, vi = np.nonzero(front)
         if len(qi) == 0:

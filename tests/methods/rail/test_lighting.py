@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
+from methods.rail import lighting
 from methods.rail.lighting import (PathVertices, ProgressiveIrradiance, cone_directions, scene_cones,
-                                   shade_points)
+                                   shade_points, shade_points_reference)
 from methods.rail.pointset import poisson_accept
 from suite.core.scene import load
 from suite.core.trace import make
@@ -20,17 +21,21 @@ def test01_progressive_mean_restarts_with_the_previous_estimate_as_first_term():
     assert acc.E == pytest.approx(np.full((2, 3), 6.0)) and acc.sequences == 2
 
 
+def _oriented_points(scene, rng, n: int, margin: float):
+    """``n`` random points inside the scene's box (``margin`` of it kept free on each side) with random unit
+    normals."""
+    lo, hi = (np.asarray(b, float) for b in scene.bounds())
+    p = lo + (hi - lo) * rng.uniform(margin, 1.0 - margin, (n, 3))
+    normal = rng.normal(size=(n, 3))
+    return p, normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+
 def test02_vpl_shading_equals_the_per_pair_sum_with_shadow_rays():
     scene = load("living_room")
     tracer = make("embree", scene)
     rng = np.random.default_rng(0)
-    lo, hi = (np.asarray(b, float) for b in scene.bounds())
-    q = lo + (hi - lo) * rng.uniform(0.2, 0.8, (40, 3))
-    qn = rng.normal(size=(40, 3))
-    qn /= np.linalg.norm(qn, axis=1, keepdims=True)
-    v_pos = lo + (hi - lo) * rng.uniform(0.2, 0.8, (7, 3))
-    v_n = rng.normal(size=(7, 3))
-    v_n /= np.linalg.norm(v_n, axis=1, keepdims=True)
+    q, qn = _oriented_points(scene, rng, 40, 0.2)
+    v_pos, v_n = _oriented_points(scene, rng, 7, 0.2)
     vpls = PathVertices(v_pos, v_n, np.full((7, 3), 0.5), rng.uniform(1, 3, (7, 3)), np.ones(7, np.int32),
                         np.zeros(7, np.int32))
     E, counters = shade_points(q, qn, vpls, tracer, clamp_m=0.05, batch=64)
@@ -89,3 +94,69 @@ def test05_joint_bilateral_upsampling_keeps_surfaces_apart():
     sub = (slice(None, None, s), slice(None, None, s))
     up = joint_bilateral_upsample(truth[sub], valid[sub], normal[sub], depth[sub], normal, depth, valid, s)
     np.testing.assert_allclose(up, truth, rtol=1e-3)
+
+
+@pytest.mark.parametrize("batch,step", [(lighting.PAIR_BATCH, lighting.STEP_PAIRS), (700, 150), (90, 1), (10, 10)])
+def test06_the_pipelined_compiled_shading_has_the_bits_of_the_numpy_reference(batch, step, monkeypatch):
+    """The same rays and the same sums per point in the same order, however the pairs are split into the
+    reference's batches and the pipeline's steps (several steps per batch, one VPL per step, batches smaller than
+    the point count), on the host tracer and on one without local entry points."""
+    scene = load("living_room")
+    tracer = make("embree", scene)
+    rng = np.random.default_rng(5)
+    q, qn = _oriented_points(scene, rng, 60, 0.05)
+    v_pos, v_n = _oriented_points(scene, rng, 23, 0.05)
+    v_n[5] = qn[0] = [0.0, 0.0, 0.0]  # no pair of these faces anything: no ray
+    vpls = PathVertices(v_pos, v_n, rng.uniform(0.2, 0.9, (23, 3)), rng.uniform(1, 3, (23, 3)), np.ones(23, np.int32),
+                        np.zeros(23, np.int32))
+    monkeypatch.setattr(lighting, "STEP_PAIRS", step)
+
+    class WorldOnly:  # occluded on world-space rays only
+        shift, counters = tracer.shift, tracer.counters
+
+        def occluded(self, *a):
+            return tracer.occluded(*a)
+
+    ref, ref_counters = shade_points_reference(q, qn, vpls, tracer, clamp_m=0.05, batch=batch)
+    assert 0 < ref_counters["rays"] < ref_counters["pairs"] and (ref > 0).any()
+    for tr in (tracer, WorldOnly()):
+        E, counters = shade_points(q, qn, vpls, tr, clamp_m=0.05, batch=batch)
+        assert counters == ref_counters and np.array_equal(E, ref)
+    assert shade_points(q[:0], qn[:0], vpls, tracer, 0.05)[0].shape == (0, 3)
+
+
+def test07_a_failing_query_stops_the_pipelined_shading_with_its_error(monkeypatch):
+    import threading
+
+    scene = load("living_room")
+    tracer = make("embree", scene)
+    rng = np.random.default_rng(6)
+    lo, hi = (np.asarray(b, float) for b in scene.bounds())
+    q = lo + (hi - lo) * rng.uniform(0.1, 0.9, (50, 3))
+    qn = np.tile([0.0, 0.0, 1.0], (50, 1))
+    vpls = PathVertices(lo + (hi - lo) * rng.uniform(0.1, 0.9, (12, 3)), np.tile([0.0, 0.0, -1.0], (12, 1)),
+                        np.full((12, 3), 0.5), np.ones((12, 3)), np.ones(12, np.int32), np.zeros(12, np.int32))
+    monkeypatch.setattr(lighting, "STEP_PAIRS", 50)
+    calls = []
+
+    class Failing:  # the third query fails
+        shift, counters = tracer.shift, tracer.counters
+
+        def occluded(self, *a):
+            calls.append(1)
+            if len(calls) == 3:
+                raise RuntimeError("backend lost")
+            return tracer.occluded(*a)
+
+    raised = []
+
+    def run():
+        try:
+            shade_points(q, qn, vpls, Failing(), clamp_m=0.05, batch=200)
+        except RuntimeError as exc:
+            raised.append(str(exc))
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(60)
+    assert not t.is_alive() and raised == ["backend lost"]
