@@ -519,6 +519,16 @@ PARTS = 2
 PART_MIN_CHAINS = 2048
 
 
+def part_bounds(weight: np.ndarray, count: int) -> np.ndarray:
+    """``count + 1`` bounds of contiguous runs of rows whose summed ``weight`` (positive) is as even as whole rows
+    allow: each run ends at the first row whose prefix sum reaches its share."""
+    cum = np.cumsum(np.asarray(weight, np.float64))
+    if count <= 1 or len(cum) == 0:
+        return np.array([0, len(cum)], np.int64)
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, count) / count, side="left") + 1
+    return np.concatenate([[0], np.minimum(cuts, len(cum)), [len(cum)]]).astype(np.int64)
+
+
 def _specular(scene) -> np.ndarray:
     """Per material: mirror or glass (its chains go on)."""
     return np.array([m.is_specular for m in scene.materials], np.bool_)
@@ -530,7 +540,11 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     rows = np.nonzero(surface.valid & branches.spec[np.maximum(surface.material, 0)])[0]
     emission = np.zeros((len(surface.valid), 3))
     count = PARTS if len(rows) >= PART_MIN_CHAINS else 1
-    bounds = np.linspace(0, len(rows), count + 1).astype(np.int64)
+    # Parts of about equal work, not equal pixel counts: a glass or water chain that takes both branches traces
+    # two rays per depth where a mirror's traces one (gallery 320x180: 0.663 of the raw rate with equal pixel
+    # counts, parts of 28 k and 13 k rays; 0.695 balanced). A pixel's points keep their order in any split.
+    two = np.array([m.kind != "mirror" and branches.all_branches for m in scene.materials], np.bool_)
+    bounds = part_bounds(np.where(two[surface.material[rows]], 2.0, 1.0), count)
     parts = [rows[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
     args = (scene, t_s, surface, max_depth, skip_faces, branches, emission)
     if compiled and count > 1 and getattr(tracer, "device", None) is None:

@@ -119,7 +119,20 @@ def test05_the_frame_does_not_depend_on_how_the_chains_are_split(renderer, mater
     assert np.array_equal(images[0], images[1]) and np.array_equal(images[0], images[2])
 
 
-def test06_the_guide_is_the_first_of_the_strongest_chains_as_lexsort_picks_it():
+def test06_parts_split_the_chains_by_work():
+    """Contiguous runs covering every chain, of about equal weight (two rays per depth for a chain that takes
+    both branches of glass, one for a mirror's), not of equal chain counts."""
+    from methods.quake_drt.secondary import part_bounds
+
+    weight = np.r_[np.full(300, 2.0), np.ones(600)]
+    b = part_bounds(weight, 2)
+    assert b[0] == 0 and b[-1] == 900 and np.all(np.diff(b) >= 0)
+    assert [weight[x:y].sum() for x, y in zip(b[:-1], b[1:])] == [600.0, 600.0]  # 300 glass | 600 mirror chains
+    assert list(part_bounds(np.ones(10), 3)) == [0, 4, 7, 10] and list(part_bounds(np.ones(7), 1)) == [0, 7]
+    assert list(part_bounds(np.ones(0), 2)) == [0, 0]
+
+
+def test07_the_guide_is_the_first_of_the_strongest_chains_as_lexsort_picks_it():
     """Ties keep the first point, NaN strengths lose to numbers: the pick of ``np.lexsort((-strength, pixel))``."""
     from methods.quake_drt import secondary
 
