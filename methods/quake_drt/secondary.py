@@ -588,8 +588,9 @@ def _chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces
     from methods.quake_drt.primary import walk_past
 
     v = {"pixel": rows, "thr": np.ones((len(rows), 3)), "path": np.zeros(len(rows), np.int64),
-         "length": surface.t[rows].copy(), "p": surface.p[rows], "ng": surface.ng[rows], "ns": surface.ns[rows],
-         "d": surface.d[rows], "material": surface.material[rows]}
+         "length": np.take(surface.t, rows), "p": np.take(surface.p, rows, axis=0),
+         "ng": np.take(surface.ng, rows, axis=0), "ns": np.take(surface.ns, rows, axis=0),
+         "d": np.take(surface.d, rows, axis=0), "material": np.take(surface.material, rows)}
     found, rays_per_depth = [], []
     for depth in range(1, max_depth + 1):
         if len(v["pixel"]) == 0:
