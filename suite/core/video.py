@@ -16,6 +16,7 @@ from its reference frame as a real client's decoder does.
 """
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -205,11 +206,30 @@ def to_video(img: np.ndarray, exposure: float) -> np.ndarray:
 
 
 def from_video(rgb8: np.ndarray, exposure: float) -> np.ndarray:
-    """8-bit sRGB → linear radiance (the inverse display transform), so metrics see what the viewer saw."""
+    """8-bit sRGB → linear radiance (the inverse display transform), so metrics see what the viewer saw.
+
+    8-bit input is looked up in a table of the 256 values (:func:`_from_video_table`: the same float64 transform per
+    value, so the same float32 results as transforming every pixel, in a tenth of the time: every decoded frame of a
+    streamed method goes through here); other input is transformed pixel by pixel."""
+    rgb8 = np.asarray(rgb8)
+    if rgb8.dtype == np.uint8:
+        return _from_video_table(float(exposure))[rgb8]
+    return _from_video_values(rgb8.astype(np.float64), float(exposure))
+
+
+def _from_video_values(values: np.ndarray, exposure: float) -> np.ndarray:
     import colour
 
-    linear = colour.cctf_decoding(rgb8.astype(np.float64) / 255.0, function="sRGB")
-    return (np.asarray(linear) / float(exposure)).astype(np.float32)
+    linear = colour.cctf_decoding(values / 255.0, function="sRGB")
+    return (np.asarray(linear) / exposure).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=32)
+def _from_video_table(exposure: float) -> np.ndarray:
+    """(256,) float32: :func:`from_video` of every 8-bit value at ``exposure``."""
+    table = _from_video_values(np.arange(256, dtype=np.float64), exposure)
+    table.flags.writeable = False
+    return table
 
 
 # ------------------------------------------------------------------------------------------- streaming

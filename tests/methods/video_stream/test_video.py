@@ -92,3 +92,20 @@ def test07_udp_loss_damages_frames_until_the_next_idr(tmp_path):
             assert status[i] in ("damaged", "frozen")
         if status[i] == "ok" and i > 0 and status[i - 1] != "ok":
             assert key[i], "damage heals only at an IDR frame"
+
+
+@pytest.mark.parametrize("exposure", [1.0, 0.37, 2.5])
+def test08_decoded_8bit_frames_become_the_linear_radiance_of_the_display_transform(exposure):
+    """from_video looks 8-bit values up in a table: every value gives the bits of the sRGB decoding of that value,
+    in any frame shape, and input that is not 8-bit is transformed pixel by pixel."""
+    import colour
+
+    values = np.arange(256, dtype=np.uint8)
+    direct = (np.asarray(colour.cctf_decoding(values.astype(np.float64) / 255.0, function="sRGB"))
+              / exposure).astype(np.float32)
+    assert np.array_equal(video.from_video(values, exposure), direct)
+    frame = np.random.default_rng(9).integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    out = video.from_video(frame, exposure)
+    assert out.dtype == np.float32 and out.shape == frame.shape and np.array_equal(out, direct[frame])
+    assert np.array_equal(video.from_video(frame.astype(np.uint16), exposure), out)  # pixel by pixel: the same
+    assert video.from_video(np.array([[[255, 0, 128]]], np.uint8), exposure)[0, 0, 0] == np.float32(1.0 / exposure)
