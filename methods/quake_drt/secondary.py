@@ -471,10 +471,15 @@ def bsdf_normal(scene, material, ns_view, ns_raw, wi) -> np.ndarray:
     diffuse surfaces, the interpolated normal turned toward the viewer for two-sided glossy ones, the raw
     interpolated normal for one-sided glossy ones (whose back is black)."""
     out = np.asarray(ns_view, np.float64).copy()
-    for mid in np.unique(material):
-        m = scene.materials[int(mid)]
-        if m.shading_kind == "diffuse" or not m.is_glossy:
+    glossy = [i for i, m in enumerate(scene.materials) if m.shading_kind != "diffuse" and m.is_glossy]
+    if not glossy or len(out) == 0:
+        return out
+    # The materials present, by counting (np.unique sorts: 1 ms of a 320x180 frame's shading points).
+    present = np.bincount(np.maximum(np.asarray(material, np.int64), 0), minlength=len(scene.materials)) > 0
+    for mid in glossy:
+        if not present[mid]:
             continue
+        m = scene.materials[mid]
         sel = material == mid
         if m.twosided:
             out[sel] = np.where(_dot(wi[sel], ns_raw[sel])[:, None] < 0, -ns_raw[sel], ns_raw[sel])
