@@ -31,6 +31,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from methods.quake_drt import asvgf as asvgf_mod
@@ -274,15 +275,7 @@ class Pipeline:
                                          s.soft_shadows, tracer, scene, _min_distance(scene), s.chunk_rays, skip)
             else:
                 il, stats = np.zeros((len(pts), 3)), direct.DirectStats()
-            weight = pts.throughput * np.where(pts.lambert[:, None], pts.albedo, 1.0)
-            radiance = np.zeros((n, 3))
-            albedo = np.zeros((n, 3))
-            for c in range(3):
-                radiance[:, c] = np.bincount(pts.pixel, weights=weight[:, c] * il[:, c], minlength=n)
-                albedo[:, c] = np.bincount(pts.pixel, weights=weight[:, c], minlength=n)
-            ok = albedo > 1e-6
-            illum = np.where(ok, radiance / np.where(ok, albedo, 1.0), radiance)
-            albedo = np.where(ok, albedo, np.where(radiance > 0, 1.0, albedo))
+            illum, albedo = demodulate(pts, il, n)
             guides = self._guides(g, surf, sec, scene, t_s)  # the filters' guides, from what this frame traced
             st.pixels = n
         emission = surf.emission.copy()
@@ -429,3 +422,51 @@ def _min_distance(scene) -> float:
     from suite.core.shading import min_light_distance
 
     return min_light_distance(scene)
+
+
+def demodulate_reference(pts: direct.ShadingPoints, il: np.ndarray, n: int):
+    """(illumination, albedo) per pixel of ``n`` from the shading points' illumination ``il``: radiance and albedo
+    (the point's throughput times its albedo, 1 for glossy points) summed per pixel in point order
+    (``np.bincount``), the illumination their ratio where the albedo exceeds 1e-6, else the radiance over an albedo
+    of 1 (or the albedo itself where there is no radiance)."""
+    weight = pts.throughput * np.where(pts.lambert[:, None], pts.albedo, 1.0)
+    radiance = np.zeros((n, 3))
+    albedo = np.zeros((n, 3))
+    for c in range(3):
+        radiance[:, c] = np.bincount(pts.pixel, weights=weight[:, c] * il[:, c], minlength=n)
+        albedo[:, c] = np.bincount(pts.pixel, weights=weight[:, c], minlength=n)
+    ok = albedo > 1e-6
+    illum = np.where(ok, radiance / np.where(ok, albedo, 1.0), radiance)
+    return illum, np.where(ok, albedo, np.where(radiance > 0, 1.0, albedo))
+
+
+def demodulate(pts: direct.ShadingPoints, il: np.ndarray, n: int):
+    """:func:`demodulate_reference` in one compiled pass (the same sums in the same order: its bits)."""
+    pixel = np.ascontiguousarray(pts.pixel, np.int64)
+    if len(pixel) and (pixel.min() < 0 or pixel.max() >= n):
+        raise ValueError(f"shading points of pixels outside the {n}-pixel frame")
+    illum, albedo = np.empty((n, 3)), np.empty((n, 3))
+    _demodulate_kernel(pixel, np.ascontiguousarray(pts.throughput, np.float64),
+                       np.ascontiguousarray(pts.lambert, np.bool_), np.ascontiguousarray(pts.albedo, np.float64),
+                       np.ascontiguousarray(il, np.float64), illum, albedo)
+    return illum, albedo
+
+
+@numba.njit(cache=True, nogil=True)
+def _demodulate_kernel(pixel, throughput, lambert, point_albedo, il, illum, albedo):
+    radiance = np.zeros(illum.shape)
+    albedo[:] = 0.0
+    for i in range(pixel.shape[0]):
+        p = pixel[i]
+        for c in range(3):
+            w = throughput[i, c] * (point_albedo[i, c] if lambert[i] else 1.0)
+            radiance[p, c] += w * il[i, c]
+            albedo[p, c] += w
+    for p in range(illum.shape[0]):
+        for c in range(3):
+            a, r = albedo[p, c], radiance[p, c]
+            if a > 1e-6:
+                illum[p, c] = r / a
+            else:
+                illum[p, c] = r
+                albedo[p, c] = 1.0 if r > 0 else a

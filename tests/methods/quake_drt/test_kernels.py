@@ -230,3 +230,29 @@ def test08_pipelined_shading_samples_equal_the_whole_image_passes(monkeypatch):
         _, piped = primary.primary_stage(scene, tracer, 0.0, None, (w, h), seeds, jitter=True)
         for field in SURFACE_FIELDS:
             assert _same(getattr(whole, field), getattr(piped, field)), field
+
+
+def test09_per_pixel_demodulation_equals_bincount():
+    """Radiance and albedo summed per pixel in point order and their ratio (or the fallbacks for an albedo under
+    1e-6): the compiled pass gives the bits of the np.bincount reference, with glossy points (albedo 1), several
+    points per pixel, pixels without points and black points."""
+    from methods.quake_drt import pipeline
+
+    rng = np.random.default_rng(12)
+    m, n = 5000, 900
+    albedo = rng.random((m, 3))
+    albedo[::11] = 0.0                          # black surfaces: the albedo fallback
+    pts = direct.ShadingPoints(pixel=rng.integers(0, n - 50, m), throughput=rng.random((m, 3)) * 2,
+                               p=np.zeros((m, 3)), ng=np.zeros((m, 3)), ns=np.zeros((m, 3)), wi=np.zeros((m, 3)),
+                               albedo=albedo, material=np.zeros(m, np.int64), prim=np.zeros(m, np.int64),
+                               seed=np.zeros(m, np.uint32), lambert=rng.random(m) < 0.8)
+    il = rng.random((m, 3)) * 3
+    il[::13] = 0.0
+    pts.pixel[:3], pts.lambert[:3], pts.throughput[:3] = n - 1, False, 1e-8  # radiance under a near-zero albedo
+    got = pipeline.demodulate(pts, il, n)
+    ref = pipeline.demodulate_reference(pts, il, n)
+    assert all(_same(a, b) for a, b in zip(got, ref))
+    assert (ref[1][n - 50:-1] == 0).all() and (ref[1][-1] == 1.0).all()  # empty pixels; albedo 1 under light
+    empty = pts.subset(slice(0, 0))
+    assert all(_same(a, b) for a, b in zip(pipeline.demodulate(empty, il[:0], 4),
+                                           pipeline.demodulate_reference(empty, il[:0], 4)))
