@@ -946,11 +946,17 @@ def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m
     grid = lambda vals, dim: scatter_fragments(vals, frag.index, shape, dim)  # noqa: E731
     var = np.maximum(m2 - m1 * m1, 0.0) / max(int(spp), 1)
     pix_angle = 2 * math.tan(math.radians(view.fov_deg) / 2) / view.width
-    illum_g = grid(illum, 3)
-    var_g = spatial_variance(illum_g, layers.valid, grid(var, 0))
-    out = svgf_layers(illum_g, var_g, grid(frag.position, 3), grid(frag.normal, 3), layers.valid,
-                      np.where(layers.valid, layers.t, 0.0), pix_angle, iterations=iterations)
-    return out[frag.index].astype(np.float64)
+    var_g = spatial_variance(grid(illum, 3), layers.valid, grid(var, 0))
+    # svgf_layers's grids, but the three-channel ones scattered straight into the kernel's (H, W, L) layout rather
+    # than transposed from (L, H, W) (about 15 ms an update at 480x270 with 4 layers): the same values.
+    k, y, x = frag.index
+    pixel_index, pixel_shape = (y, x, k), shape[1:] + shape[:1]
+    pixel_grid = lambda vals: scatter_fragments(vals, pixel_index, pixel_shape, 3)  # noqa: E731
+    pixel_major = lambda a, dt: np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dt)  # noqa: E731
+    out = _svgf_passes(pixel_grid(illum), pixel_major(var_g, np.float64), pixel_grid(frag.position),
+                       pixel_grid(frag.normal), pixel_major(layers.valid, np.bool_),
+                       pixel_major(np.where(layers.valid, layers.t, 0.0), np.float64), pix_angle, iterations)
+    return out[pixel_index].astype(np.float32).astype(np.float64)
 
 
 def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: float, iterations: int = 5,
@@ -961,17 +967,24 @@ def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: floa
 
     Differs from the thesis: no temporal accumulation (updates are ~180 ms apart), so the variance comes from the
     per-fragment sample moments only, and it is not pre-blurred."""
-    kern = _svgf()
     # The kernel's layout: (H, W, L[, 3]), a pixel's fragments side by side.
     pixel_major = lambda a, dt: np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dt)  # noqa: E731
-    col, var = pixel_major(illum, np.float64), pixel_major(variance, np.float64)
-    pos, nrm = pixel_major(position, np.float64), pixel_major(normal, np.float64)
-    val = pixel_major(valid, np.bool_)
-    dep = pixel_major(np.where(valid, depth, 0.0), np.float64)
+    col = _svgf_passes(pixel_major(illum, np.float64), pixel_major(variance, np.float64),
+                       pixel_major(position, np.float64), pixel_major(normal, np.float64), pixel_major(valid, np.bool_),
+                       pixel_major(np.where(valid, depth, 0.0), np.float64), pix_angle, iterations, shift_scale,
+                       sigma_l, sigma_n)
+    return np.ascontiguousarray(np.moveaxis(col, 2, 0), np.float32)
+
+
+def _svgf_passes(col, var, pos, nrm, val, dep, pix_angle: float, iterations: int, shift_scale: float = 1.0,
+                 sigma_l: float = 4.0, sigma_n: float = 128.0) -> np.ndarray:
+    """The à-trous passes of :func:`svgf_layers` on grids in the kernel's (H, W, L[, 3]) layout (float64, bool for
+    ``val``); returns the filtered (H, W, L, 3) float64 illumination."""
+    kern = _svgf()
     for i in range(iterations):
         out_c = np.zeros_like(col)
         out_v = np.zeros_like(var)
         kern(col, var, pos, nrm, val, dep, 1 << i, float(pix_angle), float(shift_scale), float(sigma_l),
              float(sigma_n), out_c, out_v)
         col, var = out_c, out_v
-    return np.ascontiguousarray(np.moveaxis(col, 2, 0), np.float32)
+    return col

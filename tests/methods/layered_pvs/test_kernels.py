@@ -288,3 +288,33 @@ def test08_layered_svgf_follows_the_text(sigma_n):
     assert np.allclose(got[valid], want[valid], rtol=2e-6, atol=1e-7)
     assert not np.allclose(got[valid], illum[valid], rtol=1e-3)  # the filter did filter
     assert (got[~valid] == 0).all()
+
+
+def test09_the_denoised_fragments_are_svgf_of_their_layer_grids():
+    """denoise_fragments scatters its three-channel grids straight into the kernel's layout: its output is
+    svgf_layers of the (L, H, W) grids read back at the fragments, bit for bit (holes, a partly filled second layer,
+    per-fragment sample variance and the spatial one)."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(8)
+    L, H, W = 2, 12, 17
+    valid = np.zeros((L, H, W), bool)
+    valid[0] = rng.random((H, W)) < 0.85
+    valid[1] = valid[0] & (rng.random((H, W)) < 0.5)
+    index = np.nonzero(valid)
+    n = len(index[0])
+    t = np.where(valid, 1.5 + rng.random((L, H, W)), np.inf)
+    normal = rng.normal(size=(n, 3)) + [0.0, 0.0, -3.0]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    frag = SimpleNamespace(index=index, position=rng.random((n, 3)), normal=normal)
+    layers = SimpleNamespace(prim=np.zeros((L, H, W), np.int64), valid=valid, t=t)
+    view = SimpleNamespace(fov_deg=60.0, width=W)
+    illum, m1 = rng.random((n, 3)), rng.random(n)
+    m2 = m1 * m1 + rng.random(n) * 0.1
+    got = sv.denoise_fragments(view, layers, frag, illum, m1, m2, spp=2, iterations=3)
+    grid = lambda vals, dim: sv.scatter_fragments(vals, index, (L, H, W), dim)  # noqa: E731
+    var = sv.spatial_variance(grid(illum, 3), valid, grid(np.maximum(m2 - m1 * m1, 0.0) / 2, 0))
+    want = sv.svgf_layers(grid(illum, 3), var, grid(frag.position, 3), grid(normal, 3), valid,
+                          np.where(valid, t, 0.0), 2 * np.tan(np.radians(30.0)) / W, iterations=3)[index]
+    assert got.dtype == np.float64 and got.shape == (n, 3) and np.array_equal(got, want.astype(np.float64))
+    assert not np.allclose(got, illum, rtol=1e-3)
