@@ -31,7 +31,7 @@ def _passes() -> dict:
 
         j = numba.njit(cache=True, nogil=True)
         _texel = j(_texel)
-        _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _fill_pass)}
+        _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _unpack_pass, _fill_pass)}
     return _compiled
 
 
@@ -351,7 +351,33 @@ def pack_reference(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: T
 
 
 def unpack(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):
-    """Slot arrays back from a packed texture: (colour (L, H, W, 3), mask (L, H, W) as stored, stored (L, H, W))."""
+    """Slot arrays back from a packed texture: (colour (L, H, W, 3), mask (L, H, W) as stored, stored (L, H, W)).
+    One compiled pass over every slot's pixels (:func:`_texel`), with the results of :func:`unpack_reference`."""
+    h, w = layout.height, layout.width
+    colour = np.zeros((layers, h, w, 3), np.uint8)
+    m = np.zeros((layers, h, w), np.uint8)
+    stored = np.zeros((layers, h, w), bool)
+    _passes()["_unpack_pass"](np.ascontiguousarray(tex, np.uint8), np.ascontiguousarray(mask), _address(layout),
+                              colour, m, stored)
+    return colour, m, stored
+
+
+def _unpack_pass(tex, mask, address, colour, m, stored):
+    L, h, w = stored.shape
+    for s in range(L):
+        for y in range(h):
+            for x in range(w):
+                tx, ty, ok = _texel(x, y, s, address)
+                if ok:
+                    stored[s, y, x] = True
+                    for c in range(3):
+                        colour[s, y, x, c] = tex[ty, tx, c]
+                    m[s, y, x] = mask[ty, tx]
+
+
+def unpack_reference(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):
+    """:func:`unpack` as numpy gathers per slot over :func:`slot_texel` (the reference its compiled pass is tested
+    against)."""
     h, w = layout.height, layout.width
     yy, xx = np.mgrid[0:h, 0:w]
     colour = np.zeros((layers, h, w, 3), np.uint8)

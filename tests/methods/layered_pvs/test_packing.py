@@ -140,3 +140,21 @@ def test08_compiled_packing_gives_the_texture_and_mask_of_the_numpy_gathers(orde
         for fn in (packing.pack, packing.pack_reference):
             with pytest.raises(ValueError, match="excludes it"):
                 fn(slot_colour, occupied, bad)
+
+
+@pytest.mark.parametrize("order", packing.ORDERS)
+@pytest.mark.parametrize("full_layers", [0, 1, 2])
+def test09_unpack_in_one_compiled_pass_equals_the_numpy_gathers(order, full_layers):
+    """Every slot's colour, stored mask value ('any' pixels included, as packed and as the codec resolves them)
+    and whether it is stored: the compiled pass gives the reference's arrays."""
+    rng = np.random.default_rng(30 + full_layers)
+    count, valid, depth, colour = _layers(rng)
+    slot_colour, occupied = packing.to_slots(colour, valid, packing.relocate(depth, valid, 8))
+    counts = np.maximum(packing.block_layer_counts(occupied, 8) - full_layers, 0)
+    layout = packing.make_layout(counts, 24, 16, 8, full_layers, order)
+    tex, mask = packing.pack(slot_colour, occupied, layout)
+    assert (mask == codecs.ANY).any()
+    for m in (mask, codecs.quadtree_decode(codecs.quadtree_encode(mask), mask.shape)):
+        got, want = packing.unpack(tex, m, layout, 4), packing.unpack_reference(tex, m, layout, 4)
+        assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(got, want))
+        assert want[2].any() and not want[2].all()
