@@ -31,7 +31,8 @@ def _passes() -> dict:
 
         j = numba.njit(cache=True, nogil=True)
         _texel = j(_texel)
-        _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _unpack_pass, _fill_pass)}
+        _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _unpack_pass,
+                                                _relocate_back_pass, _fill_pass)}
     return _compiled
 
 
@@ -393,7 +394,32 @@ def unpack_reference(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, laye
 
 def relocate_back(slot_colour: np.ndarray, slot_mask: np.ndarray, counts: np.ndarray):
     """Client side of §4.1.4: the k-th set slot of a pixel holds its k-th fragment; ``counts`` (H, W) = fragments
-    per pixel from the client's own depth peeling. Returns (layer colour (L, H, W, 3), layer valid (L, H, W))."""
+    per pixel from the client's own depth peeling. Returns (layer colour (L, H, W, 3), layer valid (L, H, W)).
+    One compiled pass over the pixels, with the results of :func:`relocate_back_reference`."""
+    out = np.zeros_like(slot_colour)
+    valid = np.zeros(slot_mask.shape, bool)
+    _passes()["_relocate_back_pass"](np.ascontiguousarray(slot_colour), np.ascontiguousarray(slot_mask),
+                                     np.ascontiguousarray(counts, np.int64), out, valid)
+    return out, valid
+
+
+def _relocate_back_pass(slot_colour, slot_mask, counts, out, valid):
+    L, h, w = slot_mask.shape
+    for y in range(h):
+        for x in range(w):
+            rank = np.int64(-1)  # the reference's cumulative sum of the mask values, minus one
+            for s in range(L):
+                rank += np.int64(slot_mask[s, y, x])
+                if slot_mask[s, y, x] > 0 and rank < counts[y, x]:
+                    if rank >= L:  # mask values above 1 ranked past the last layer (the reference's IndexError)
+                        raise IndexError("a slot's mask ranks its fragment past the last layer")
+                    for c in range(out.shape[3]):
+                        out[rank, y, x, c] = slot_colour[s, y, x, c]
+                    valid[rank, y, x] = True
+
+
+def relocate_back_reference(slot_colour: np.ndarray, slot_mask: np.ndarray, counts: np.ndarray):
+    """:func:`relocate_back` as numpy expressions per slot (the reference its compiled pass is tested against)."""
     L, h, w = slot_mask.shape
     rank = np.cumsum(slot_mask.astype(np.int64), axis=0) - 1
     out = np.zeros_like(slot_colour)

@@ -158,3 +158,24 @@ def test09_unpack_in_one_compiled_pass_equals_the_numpy_gathers(order, full_laye
         got, want = packing.unpack(tex, m, layout, 4), packing.unpack_reference(tex, m, layout, 4)
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(got, want))
         assert want[2].any() and not want[2].all()
+
+
+def test10_compiled_relocation_back_equals_the_numpy_ranks():
+    """The k-th set slot of a pixel goes to layer k while k is below the client's count: the compiled pass gives the
+    reference's colours and validity, with counts below, at and above the set slots and a mask with gaps."""
+    rng = np.random.default_rng(41)
+    L, h, w = 4, 16, 24
+    slot_mask = (rng.random((L, h, w)) < 0.6).astype(np.uint8)
+    slot_colour = rng.integers(0, 256, (L, h, w, 3), dtype=np.uint8)
+    counts = rng.integers(0, L + 2, (h, w))
+    got = packing.relocate_back(slot_colour, slot_mask, counts)
+    want = packing.relocate_back_reference(slot_colour, slot_mask, counts)
+    assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(got, want))
+    assert want[1].any() and not want[1].all()
+    ranks_past = slot_mask.copy()
+    ranks_past[:, 0, 0] = 2                       # mask values of 2 rank the fourth slot past the last layer
+    counts[0, 0] = 99
+    with pytest.raises(IndexError):
+        packing.relocate_back_reference(slot_colour, ranks_past, counts)
+    with pytest.raises(IndexError):
+        packing.relocate_back(slot_colour, ranks_past, counts)
