@@ -952,7 +952,6 @@ def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m
     k, y, x = frag.index
     pixel_index, pixel_shape = (y, x, k), shape[1:] + shape[:1]
     pixel_grid = lambda vals: scatter_fragments(vals, pixel_index, pixel_shape, 3)  # noqa: E731
-    pixel_major = lambda a, dt: np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dt)  # noqa: E731
     out = _svgf_passes(pixel_grid(illum), pixel_major(var_g, np.float64), pixel_grid(frag.position),
                        pixel_grid(frag.normal), pixel_major(layers.valid, np.bool_),
                        pixel_major(np.where(layers.valid, layers.t, 0.0), np.float64), pix_angle, iterations)
@@ -967,13 +966,16 @@ def svgf_layers(illum, variance, position, normal, valid, depth, pix_angle: floa
 
     Differs from the thesis: no temporal accumulation (updates are ~180 ms apart), so the variance comes from the
     per-fragment sample moments only, and it is not pre-blurred."""
-    # The kernel's layout: (H, W, L[, 3]), a pixel's fragments side by side.
-    pixel_major = lambda a, dt: np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dt)  # noqa: E731
     col = _svgf_passes(pixel_major(illum, np.float64), pixel_major(variance, np.float64),
                        pixel_major(position, np.float64), pixel_major(normal, np.float64), pixel_major(valid, np.bool_),
                        pixel_major(np.where(valid, depth, 0.0), np.float64), pix_angle, iterations, shift_scale,
                        sigma_l, sigma_n)
     return np.ascontiguousarray(np.moveaxis(col, 2, 0), np.float32)
+
+
+def pixel_major(a, dtype) -> np.ndarray:
+    """An (L, H, W[, C]) layer grid in the SVGF kernel's layout, (H, W, L[, C]): a pixel's fragments side by side."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(a), 0, 2), dtype)
 
 
 def _svgf_passes(col, var, pos, nrm, val, dep, pix_angle: float, iterations: int, shift_scale: float = 1.0,

@@ -311,10 +311,6 @@ def bench_lights(scene, tracer, resolution, resolutions, t_s: float, repeats: in
 
 # ---------------------------------------------------------------------------------------------------- store
 
-def bench_path(results_root) -> Path:
-    return Path(results_root) / "bench" / "quake_drt.json"
-
-
 def load(results_root) -> dict | None:
     from suite.harness.reporting import load_bench
 

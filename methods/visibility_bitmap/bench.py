@@ -331,19 +331,15 @@ def bytes_by_lights(scene, tracer, resolution, light_counts, frames: int, codec_
 
 # ------------------------------------------------------------------------------------------------- storage
 
-BENCH_FILE = "visibility_bitmap.json"
+BENCH_NAME = "visibility_bitmap"  # results/bench/<name>.json
 SCHEMA_VERSION = 1
-
-
-def bench_path(results_root) -> Path:
-    return Path(results_root) / "bench" / BENCH_FILE
 
 
 def load(results_root) -> dict | None:
     """The stored benchmark document under ``results_root``, or None (read-only; used by the report)."""
     from suite.harness.reporting import load_bench
 
-    return load_bench(BENCH_FILE.removesuffix(".json"), None, results_root)
+    return load_bench(BENCH_NAME, None, results_root)
 
 
 def store(results_root, parts: dict) -> Path:
@@ -352,7 +348,7 @@ def store(results_root, parts: dict) -> Path:
     and is written atomically."""
     from suite.harness.cli import store_bench
 
-    return store_bench(BENCH_FILE.removesuffix(".json"), results_root, parts, SCHEMA_VERSION)
+    return store_bench(BENCH_NAME, results_root, parts, SCHEMA_VERSION)
 
 
 # ---------------------------------------------------------------------------------------------------- CLI
