@@ -37,6 +37,7 @@ import numpy as np
 from methods.quake_drt.direct import ShadingPoints, pcg_nb, uniform_nb
 from methods.quake_drt.rng import DIM_SECONDARY, stream_np, uniform_np
 from suite.core.bsdf import fresnel_conductor, fresnel_dielectric
+from suite.core.trace.base import as_rays
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS, offset_ray_origin
 
 DEFAULT_MAX_DEPTH = 5
@@ -554,14 +555,23 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     args = (scene, t_s, surface, max_depth, skip_faces, branches, emission)
     if compiled and count > 1 and getattr(tracer, "device", None) is None:
         import threading
-        from concurrent.futures import ThreadPoolExecutor
 
-        from suite.core.pipeline import SerialTracer
+        from suite.core.pipeline import SerialTracer, _worker
 
         serial = SerialTracer(tracer, threading.Lock())
-        with ThreadPoolExecutor(max_workers=count - 1) as pool:
-            pending = [pool.submit(_chains, serial, part, *args) for part in parts[1:]]
-            done = [_chains(serial, parts[0], *args)] + [f.result() for f in pending]
+        if count == 2:
+            with _worker() as pool:  # the kept worker thread (a new thread costs about 0.3 ms)
+                pending = [pool.submit(_chains, serial, part, *args) for part in parts[1:]]
+                done = [_chains(serial, parts[0], *args)] + [f.result() for f in pending]
+        else:
+            from concurrent.futures import ThreadPoolExecutor
+
+            def run(part):
+                with serial.part():
+                    return _chains(serial, part, *args)
+            with ThreadPoolExecutor(count - 1) as pool:
+                pending = [pool.submit(run, part) for part in parts[1:]]
+                done = [run(parts[0])] + [f.result() for f in pending]
     else:  # the reference, and Dr.Jit (driven from one thread): the parts one after the other
         done = [_chains(tracer, part, *args) for part in parts]
     found = [pt for points, _ in done for pt in points]
@@ -585,6 +595,17 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     return SecondaryResult(points, emission, rays_per_depth, *guide)
 
 
+def _closest_hits(tracer, org, dirs):
+    """``tracer.intersect(org, dirs)`` with the rays moved into the tracing frame (:func:`as_rays`) by the calling
+    thread: on a :class:`suite.core.pipeline.SerialTracer` only the query itself holds the tracer, and the other
+    part's query does not wait for this part's conversion. The same rays and hits."""
+    local = getattr(tracer, "intersect_local", None)
+    if local is None:
+        return tracer.intersect(org, dirs.astype(np.float32))
+    o, d, _, length = as_rays(org, dirs, 0.0, np.inf, tracer.shift, tracer.soa_origins)
+    return local(o, d, length)
+
+
 def _chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces, branches, emission):
     """The chains of the pixels ``rows``, depth by depth: ``branches(v, depth)`` makes the continuation rays of the
     chains ``v``, the tracer finds their surfaces, and ``branches.surfaces`` adds their emission (to ``emission``,
@@ -605,7 +626,7 @@ def _chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces
             break
         rays_per_depth.append(len(pix))
         if skip_faces is None:
-            h = tracer.intersect(org, dirs.astype(np.float32))
+            h = _closest_hits(tracer, org, dirs)
         else:
             h = walk_past(tracer, org, dirs, np.inf, skip_faces)
         if not (np.asarray(h.prim) >= 0).any():
