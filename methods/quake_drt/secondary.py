@@ -37,7 +37,6 @@ import numpy as np
 from methods.quake_drt.direct import ShadingPoints, pcg_nb, uniform_nb
 from methods.quake_drt.rng import DIM_SECONDARY, stream_np, uniform_np
 from suite.core.bsdf import fresnel_conductor, fresnel_dielectric
-from suite.core.trace.base import as_rays
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS, offset_ray_origin
 
 DEFAULT_MAX_DEPTH = 5
@@ -595,23 +594,13 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     return SecondaryResult(points, emission, rays_per_depth, *guide)
 
 
-def _closest_hits(tracer, org, dirs):
-    """``tracer.intersect(org, dirs)`` with the rays moved into the tracing frame (:func:`as_rays`) by the calling
-    thread: on a :class:`suite.core.pipeline.SerialTracer` only the query itself holds the tracer, and the other
-    part's query does not wait for this part's conversion. The same rays and hits."""
-    local = getattr(tracer, "intersect_local", None)
-    if local is None:
-        return tracer.intersect(org, dirs.astype(np.float32))
-    o, d, _, length = as_rays(org, dirs, 0.0, np.inf, tracer.shift, tracer.soa_origins)
-    return local(o, d, length)
-
-
 def _chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces, branches, emission):
     """The chains of the pixels ``rows``, depth by depth: ``branches(v, depth)`` makes the continuation rays of the
     chains ``v``, the tracer finds their surfaces, and ``branches.surfaces`` adds their emission (to ``emission``,
     rows of these pixels only) and splits them into shading points (diffuse, glossy) and the next depth's chains
     (mirror, glass). Returns ([(shading points, path lengths)] per depth, rays per depth)."""
     from methods.quake_drt.primary import walk_past
+    from suite.core.pipeline import local_rays, trace_local
 
     v = {"pixel": rows, "thr": np.ones((len(rows), 3)), "path": np.zeros(len(rows), np.int64),
          "length": np.take(surface.t, rows), "p": np.take(surface.p, rows, axis=0),
@@ -626,7 +615,8 @@ def _chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces
             break
         rays_per_depth.append(len(pix))
         if skip_faces is None:
-            h = _closest_hits(tracer, org, dirs)
+            # The rays moved into the tracing frame on this part's thread: only the query holds a shared tracer.
+            h = trace_local(tracer, local_rays(tracer, org, dirs), org, dirs.astype(np.float32))
         else:
             h = walk_past(tracer, org, dirs, np.inf, skip_faces)
         if not (np.asarray(h.prim) >= 0).any():
