@@ -264,7 +264,7 @@ class Pipeline:
                 sec = secondary.secondary_stage(scene, tracer, t_s, surf, seeds, s.max_depth, s.all_branches,
                                                 s.glossy_reflections, s.glossy_cone_deg, skip)
                 sec_rows = rows_of(sec.points)
-                st.pixels = int(len(np.unique(sec.points.pixel))) if len(sec.points) else 0
+                st.pixels = len(sec.guide_pixel)  # one guide per pixel that has a shading point: no np.unique
         info["secondary_rays"] = sec.rays if sec is not None else 0
         lights = lights if lights is not None else lights_mod.refresh(self.prep.lights, scene, t_s)
         with stage("direct") as st:

@@ -104,6 +104,8 @@ def test04_the_compiled_passes_have_the_bits_of_the_numpy_reference(renderer, ma
     assert sum(ref.rays_per_depth) > 100 and len(ref.points) > 50 and len(ref.rays_per_depth) >= 3
     assert (ref.points.lambert == 0).any() and ref.points.lambert.any()  # glossy metal and diffuse walls reached
     assert _same_result(out, ref)
+    # One guide per pixel with a shading point (the stage's pixel count reads it).
+    assert np.array_equal(np.sort(out.guide_pixel), np.unique(out.points.pixel))
 
 
 def test05_the_frame_does_not_depend_on_how_the_chains_are_split(renderer, materials_scene, monkeypatch):
