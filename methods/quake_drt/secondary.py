@@ -23,7 +23,8 @@ guides (normal, depth = path length) of a specular pixel are those of its strong
 
 **Cost.** Each depth is one closest-hit query between compiled passes (the branches, the surfaces, the split into
 shading points and chains), in parts on two threads so that one part's passes overlap the other's query
-(:func:`secondary_stage`); :func:`secondary_stage_reference` is the same in whole-array numpy, and the tests hold
+(:func:`secondary_stage`; each part puts its rays in the tracing frame itself, so only the query holds the
+tracer); :func:`secondary_stage_reference` is the same in whole-array numpy, and the tests hold
 the two to the same bits. ``splitbench bench quake_drt`` times the stage against the backend's raw query on its
 rays.
 """
