@@ -556,11 +556,11 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     if compiled and count > 1 and getattr(tracer, "device", None) is None:
         import threading
 
-        from suite.core.pipeline import SerialTracer, _worker
+        from suite.core.pipeline import SerialTracer, kept_worker
 
         serial = SerialTracer(tracer, threading.Lock())
         if count == 2:
-            with _worker() as pool:  # the kept worker thread (a new thread costs about 0.3 ms)
+            with kept_worker() as pool:  # the process's kept worker thread (a new thread costs about 0.3 ms)
                 pending = [pool.submit(_chains, serial, part, *args) for part in parts[1:]]
                 done = [_chains(serial, parts[0], *args)] + [f.result() for f in pending]
         else:

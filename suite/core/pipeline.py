@@ -112,9 +112,10 @@ _WORKER = {"lock": threading.Lock(), "pool": None, "pid": None}
 
 
 @contextmanager
-def _worker():
-    """A one-thread executor: the process's kept worker when it is free, else one of its own for this pipeline
-    (the kept one serves another thread's pipeline, or the pipeline whose step started this one)."""
+def kept_worker():
+    """A one-thread executor: the process's kept worker when it is free, else one of the caller's own (the kept one
+    serves another thread's pipeline, or the pipeline whose step started this caller). For :func:`pipelined` and
+    for passes that run one part on a second thread."""
     from concurrent.futures import ThreadPoolExecutor
 
     if not _WORKER["lock"].acquire(blocking=False):
@@ -196,7 +197,7 @@ def pipelined(steps) -> None:
             if not run(kind, k):
                 return
 
-    with _worker() as pool:
+    with kept_worker() as pool:
         done = pool.submit(worker)
         _trace_steps(steps, state, cond, run, claim_finish)
         done.result()

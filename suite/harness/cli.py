@@ -284,16 +284,10 @@ def store_bench(name: str, results_root, parts: dict, schema_version: int):
     """Merges ``parts`` into the benchmark document ``<results>/bench/<name>.json`` (the parts of other runs kept,
     read as :func:`suite.harness.reporting.load_bench` reads it), stamped with ``schema_version`` and the
     environment (:func:`bench_document`), written atomically. Returns its path."""
-    from pathlib import Path
-
-    from suite.harness import results
     from suite.harness.reporting import load_bench
 
-    path = Path(results_root) / "bench" / f"{name}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
     doc = {**(load_bench(name, None, results_root) or {}), **parts, "schema_version": schema_version}
-    results.write_json(path, bench_document(doc))
-    return path
+    return _store_bench(results_root, name, bench_document(doc))
 
 
 def bench_parts(text: str, known, backend: str) -> list[str]:
