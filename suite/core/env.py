@@ -161,19 +161,27 @@ def variant_of(obj) -> str | None:
         return None
     if not module.startswith("mitsuba"):
         return None
-    for variant in VARIANTS.values():
-        mod = sys.modules.get(f"mitsuba.{variant}")
-        if mod is None:
-            continue
-        for cls in type(obj).__mro__:
-            if getattr(mod, cls.__name__, None) is cls:
-                return variant
+    # Some classes are one class in every variant (the scalar transforms and points a sensor's ``to_world`` holds):
+    # an object of a class that several loaded variants share belongs to none of them.
+    loaded = [(v, sys.modules[f"mitsuba.{v}"]) for v in VARIANTS.values() if f"mitsuba.{v}" in sys.modules]
+    for cls in type(obj).__mro__:
+        owners = [v for v, mod in loaded if getattr(mod, cls.__name__, None) is cls]
+        if len(owners) == 1:
+            return owners[0]
+        if owners:
+            return None
     return None
 
 
 def check_same_variant(obj, variant: str, what: str = "the scene dict") -> None:
     """UserError when ``obj`` holds Mitsuba objects of another variant than ``variant``: Mitsuba would accept them
     and render black."""
+    import importlib
+
+    try:  # loaded, so that classes it shares with another variant are seen as shared
+        importlib.import_module(f"mitsuba.{variant}")
+    except ImportError:  # a variant that cannot load here (cuda without a GPU): no object can be of it
+        pass
     found = variant_of(obj)
     if found and found != variant:
         raise UserError(f"{what} holds Mitsuba objects built for {found}, but it is being used with {variant} "

@@ -380,6 +380,9 @@ def _bench_tracing(argv) -> int:
     p.add_argument("--backend", default="embree", help="a backend, a comma-separated list, or 'all' (every backend "
                    "that works here)")
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--max-rays", type=int, default=500_000, help="shadow rays per call (at most the pixels of "
+                   "--resolution times the scene's point lights)")
+    p.add_argument("--resolution", default="640x360", help="the camera view the shadow rays leave from")
     p.add_argument("--out", default=None, help="results root: store the figures in <out>/bench/tracing.json")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -391,6 +394,9 @@ def _bench_tracing(argv) -> int:
         raise UserError(f"the tracing benchmark is not available in this installation ({exc})") from None
     if args.repeats < 1:
         raise UserError("--repeats must be >= 1")
+    if args.max_rays < 1:
+        raise UserError("--max-rays must be >= 1")
+    resolution = tuple(runner.parse_resolution(args.resolution))
     if args.backend != "all" and "," not in args.backend and args.backend not in runner.backend_names():
         raise UserError(f"unknown backend '{args.backend}' (choose from {', '.join(runner.backend_names())})")
     if args.scene != "all" and "," not in args.scene and not os.path.isfile(args.scene) \
@@ -402,6 +408,8 @@ def _bench_tracing(argv) -> int:
         scene = runner.load_scene(name)
         for backend in backends:
             kwargs = {} if args.repeats == 5 else {"repeats": args.repeats}
+            if args.max_rays != 500_000 or resolution != (640, 360):
+                kwargs.update(max_rays=args.max_rays, resolution=resolution)
             row = bench.run(scene, backend, **kwargs)
             row.setdefault("backend", backend)
             rows.append(row)
@@ -422,6 +430,10 @@ def _bench_tracing(argv) -> int:
             print(f"    {query:9s}  suite {q['suite_rays_per_s']:>13,.0f} rays/s   raw {q['raw_rays_per_s']:>13,.0f} "
                   f"rays/s   ratio {q['ratio']:.3f}" + (f"   ({walk:.2f} backend queries per ray: the alpha walk)"
                                                          if walk > 1.0005 else ""))
+            if "kernel_ratio" in q:
+                print(f"    {'':9s}  per call: suite {q['suite_ms']:.3f} ms, raw {q['raw_ms']:.3f} ms; device time "
+                      f"alone (kernel history): suite {q['suite_kernel_ms']:.3f} ms, raw {q['raw_kernel_ms']:.3f} ms, "
+                      f"ratio {q['kernel_ratio']:.3f}")
             if "numpy" in q:
                 n = q["numpy"]
                 print(f"    {'':9s}  numpy-fed: suite {n['suite_rays_per_s']:>13,.0f}   raw {n['raw_rays_per_s']:>13,.0f}"
@@ -473,14 +485,20 @@ def format_core(rows) -> str:
         w, h = r["resolution"]
         lines.append(f"{r['scene']} {w}x{h} on {r['backend']} [{r['path']}], {r['lights']} point lights, "
                      f"{r['area_lights']} area-light triangles, median of {r['repeats']}")
-        lines.append(f"  {'stage':26s} {'ms':>9s} {'rays':>12s} {'pixels':>10s} {'bytes':>12s}")
+        lines.append(f"  {'stage':26s} {'ms':>9s} {'kernel ms':>10s} {'rays':>12s} {'pixels':>10s} {'bytes':>12s}")
         for st in r["stages"]:
             b = f"{st['bytes']:12,d}" if "bytes" in st else f"{'':12s}"
-            lines.append(f"  {st['stage']:26s} {st['ms']:9.1f} {st['rays']:12,d} {st['pixels']:10,d} {b}"
+            k = f"{st['kernel_ms']:10.2f}" if "kernel_ms" in st else f"{'':10s}"
+            lines.append(f"  {st['stage']:26s} {st['ms']:9.2f} {k} {st['rays']:12,d} {st['pixels']:10,d} {b}"
                          + (f"  ({st['note']})" if st.get("note") else ""))
-        lines.append(f"  G-buffer / raw intersect of the camera rays: {r['gbuffer_over_raw_intersect']:.2f} (goal <= 2)")
+        def kern(key, digits):
+            return f"; device time alone (kernel ms): {r[key]:.{digits}f}" if key in r else ""
+
+        lines.append(f"  G-buffer / raw intersect of the camera rays: {r['gbuffer_over_raw_intersect']:.2f} (goal <= 2)"
+                     + kern("gbuffer_over_raw_intersect_kernels", 2))
         if "visibility_raw_over_pass" in r:
-            lines.append(f"  visibility pass: raw/pass {r['visibility_raw_over_pass']:.3f} (goal >= 0.9)")
+            lines.append(f"  visibility pass: raw/pass {r['visibility_raw_over_pass']:.3f} (goal >= 0.9)"
+                         + kern("visibility_raw_over_pass_kernels", 3))
     return "\n".join(lines)
 
 

@@ -24,6 +24,10 @@ def test01_tracing_bench_compares_suite_and_raw_on_the_backends_own_memory(backe
             assert out["interface"].startswith("device")
             n = q["numpy"]
             assert n["suite_of_device_raw"] == pytest.approx(n["suite_rays_per_s"] / q["raw_rays_per_s"])
+            # device time alone, beside the wall time of a call (which adds the host's tracing and launch)
+            assert q["suite_kernel_ms"] > 0 and q["raw_kernel_ms"] > 0
+            assert q["kernel_ratio"] == pytest.approx(q["raw_kernel_ms"] / q["suite_kernel_ms"])
+            assert q["ratio"] == pytest.approx(q["raw_ms"] / q["suite_ms"])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -41,6 +45,26 @@ def test02_core_bench_reports_every_stage_with_rays_pixels_and_copy_bytes(backen
         assert stages["copy_image_to_host"]["bytes"] == pixels * 12
         assert stages["copy_gbuffer_to_host"]["bytes"] > pixels * 24
         assert out["device_counters"]["bytes_to_host"] > 0
+        for name in ("gbuffer", "raw_intersect", "visibility", "raw_occluded"):
+            assert stages[name]["kernel_ms"] > 0
+        assert out["gbuffer_over_raw_intersect_kernels"] == pytest.approx(
+            stages["gbuffer"]["kernel_ms"] / stages["raw_intersect"]["kernel_ms"])
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+def test02b_kernel_time_counts_the_device_work_a_call_launches(backend):
+    """``Device.kernel_ms``: zero for a call that launches nothing; for a query, its kernels' time, which grows with
+    the rays traced."""
+    from suite.core.trace import make
+
+    scene = load("living_room")
+    dev = make(backend, scene).device
+    o, d, tmax = bench.shadow_rays(scene, (160, 90))
+    small, large = (dev.raw_ray(*[dev.to_device(a[:n], t) for a, t in ((o, dev.Point3f),
+                                                                         (d, dev.Vector3f), (tmax, dev.Float))])
+                    for n in (1_000, len(o)))
+    assert dev.kernel_ms(lambda: None) == 0.0
+    assert 0.0 < dev.kernel_ms(lambda: dev.raw_occluded(small), 5) < dev.kernel_ms(lambda: dev.raw_occluded(large), 5)
 
 
 def test03_cli_runs_and_stores_both_benches(tmp_path, capsys):

@@ -183,6 +183,14 @@ def test07_host_copies_are_explicit_and_counted(backend):
     assert copy.nbytes == n * 4 and copy.array.dtype == np.float32
 
 
+def _edge_tie(scene, a, b):
+    """Per ray: hits ``a`` and ``b`` are different faces of one object that share an edge (two vertices)."""
+    both = (a >= 0) & (b >= 0) & (a != b)
+    fa, fb = scene.faces[np.maximum(a, 0)], scene.faces[np.maximum(b, 0)]
+    shared = (fa[:, :, None] == fb[:, None, :]).any(axis=2).sum(axis=1)
+    return both & (shared >= 2) & (scene.face_object[np.maximum(a, 0)] == scene.face_object[np.maximum(b, 0)])
+
+
 @pytest.mark.parametrize("backend", DRJIT)
 def test08_dynamic_geometry_hits_resolve_by_shape_not_shape_index(backend, monkeypatch):
     """On cuda_ad_rgb ``PreliminaryIntersection.shape_index`` is 0 whatever shape was hit, which gave hits on the
@@ -231,8 +239,11 @@ def test08_dynamic_geometry_hits_resolve_by_shape_not_shape_index(backend, monke
         got_numpy = tracer.intersect(o, d).prim
         got_device = dev.to_host(dev.intersect(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f)).prim)
         for got in (got_numpy, got_device):
-            assert np.mean(got[on_platform] == ref[on_platform]) >= 0.99
-            assert np.mean(got == ref) >= 0.99
+            # a ray through the diagonal two triangles share may hit either (OptiX breaks such ties unlike Embree):
+            # the same face, or a face of the same object sharing that edge, is agreement
+            agree = (got == ref) | _edge_tie(scene, got, ref)
+            assert np.mean(agree[on_platform]) >= 0.99 and np.mean(agree) >= 0.99
+            assert np.array_equal(scene.face_object[got[on_platform]], scene.face_object[ref[on_platform]])
         g = render_gbuffer(scene, tracer, t_s, (48, 27)).to_host(names=["prim"]).prim
         assert np.mean(g == host_gbuffer.render_gbuffer(scene, embree, t_s, (48, 27)).prim) >= 0.999
 

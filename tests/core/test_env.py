@@ -130,3 +130,9 @@ def test07_variant_of_reads_objects_arrays_and_nested_dicts():
     env.check_same_variant({"x": 1}, "cuda_ad_rgb")  # nothing to check: fine
     with pytest.raises(UserError, match="built for llvm_ad_rgb"):
         env.check_same_variant({"bsdf": mi.load_dict({"type": "diffuse"})}, "scalar_rgb")
+    # a class every variant shares (a sensor's scalar to_world) belongs to none: no false mismatch, and the search
+    # goes on to the objects that do belong to one
+    neutral = {"sensor": {"to_world": mi.ScalarTransform4f().translate([0, 1, 0])}}
+    env.check_same_variant(neutral, "scalar_rgb")
+    assert env.variant_of(neutral) is None
+    assert env.variant_of({**neutral, "bsdf": mi.load_dict({"type": "diffuse"})}) == "llvm_ad_rgb"

@@ -70,6 +70,27 @@ class Device:
         """Waits for the device (kernels launch asynchronously on both backends)."""
         self.dr.sync_thread()
 
+    def kernel_ms(self, fn, repeats: int = 5) -> float:
+        """Median over ``repeats`` calls of ``fn`` (after one warm-up) of the summed execution time of the device work
+        each call launched (Dr.Jit's kernel history: kernels, memsets, reductions): device time without the host's
+        per-call costs (tracing the kernel in Python, code generation and cache lookup, launch), which the wall time
+        of a call also holds. Kept apart from wall-time measurements: recording the history times every launch."""
+        dr = self.dr
+        fn()
+        was = dr.flag(dr.JitFlag.KernelHistory)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            per_call = []
+            for _ in range(max(int(repeats), 1)):
+                dr.sync_thread()
+                dr.kernel_history()  # drops what earlier work left in the history
+                fn()
+                dr.sync_thread()
+                per_call.append(sum(float(h.get("execution_time", 0.0)) for h in dr.kernel_history()))
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, was)
+        return float(np.median(per_call))
+
     def eval(self, *values) -> None:
         """Evaluates ``values`` (one fused kernel where their sizes agree) and waits for them."""
         self.dr.eval(*values)
@@ -233,7 +254,12 @@ class Device:
         if tracer._alpha is None:
             blocked = tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
             return blocked, None
-        groups = tracer._alpha_groups()
+        # OptiX binds one shader binding table (one scene) per kernel: on cuda_ad_rgb a kernel that traced the opaque
+        # and the alpha-tested sub-scenes would have its second query disabled by Dr.Jit ("more than one OptiX shader
+        # binding table was used within a single kernel") and its rays reported unblocked. The pass is one kernel
+        # (a symbolic loop over lights on the GPU, where no evaluation can split it), so there shadow rays take the
+        # whole-scene walk: the same answer, with a closest-hit walk for every ray the any-hit query found blocked.
+        groups = None if self.is_cuda else tracer._alpha_groups()
         if groups is None:  # the whole-scene walk of the rays the any-hit query found blocked
             blocked = tracer.query_scene.ray_test(self.ray(o_local, d, length), coherent=False, active=active) & active
             _, prim, _, _, traced = self.closest(o_local, d, length, blocked)
