@@ -282,3 +282,29 @@ def test10_device_path_agrees_with_embree(backend, name):
     v_e = host_shading.point_light_visibility(g_e, lights, embree)
     v_d = point_light_visibility(dg, lights, tracer).to_host()
     assert np.mean(v_e == v_d) >= 0.995
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test11_frame_scalars_read_from_one_copied_block_give_the_same_gbuffer(backend, monkeypatch):
+    """Per-frame scalars (camera basis, positions, sizes) reach the kernels either as broadcast scalars (llvm) or as
+    loads from one copied block (cuda, where each broadcast scalar is a launch): the same values, so the same
+    G-buffer, bit for bit, motion vectors and moving objects included (arena)."""
+    from suite.core.device import render_gbuffer
+
+    scene = load("arena")
+    tracer = make(backend, scene)
+    dev = tracer.device
+    fields = ("position", "normal", "depth", "prim", "motion")
+
+    def render():
+        before = dev.counters["copies_to_device"]
+        g = render_gbuffer(scene, tracer, 0.9, RES, 0.8).to_host(names=list(fields))
+        return g, dev.counters["copies_to_device"] - before
+
+    render()  # the scene tables go to the device on first use
+    plain, plain_copies = render()
+    monkeypatch.setattr(dev, "is_cuda", not dev.is_cuda)  # the other way of passing the scalars
+    other, other_copies = render()
+    assert (other_copies > plain_copies) == dev.is_cuda  # the blocks are explicit, counted copies
+    for name in fields:
+        assert np.array_equal(getattr(plain, name), getattr(other, name)), name

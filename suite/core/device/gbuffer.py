@@ -165,18 +165,20 @@ def camera_rays(dev, pose, fov_deg: float, width: int, height: int):
     unit directions (Vector3d, row-major from the top-left pixel). Bit-identical to the host on ``llvm_ad_rgb``."""
     dr, F64, U = dev.dr, dev.Float64, dev.UInt32
     forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
-    op = lambda x: dev.opaque(F64, float(x))  # noqa: E731 - opaque: no recompilation per frame; exact division
     tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
     aspect = width / height
+    # read from memory: no recompilation per frame; exact division
+    w, h, tan_op, aspect_op, *basis = dev.opaques([width, height, tan_x, aspect, *forward, *right, *up])
+    fwd_op, right_op, up_op = basis[0:3], basis[3:6], basis[6:9]
     idx = dev.arange(width * height)
-    w_u = dev.opaque(U, width)
+    w_u = dev.opaque(U, width)  # a broadcast scalar: a gathered divisor reads 0 in the masked tail lanes of a packet
     row = idx // w_u
     col = idx - row * w_u
-    sx = (F64(col) + 0.5) / op(width)
-    sy = (F64(row) + 0.5) / op(height)
-    px = (2.0 * sx - 1.0) * op(tan_x)
-    py = -(2.0 * sy - 1.0) * op(tan_x) / op(aspect)
-    d = [(op(forward[c]) + px * op(right[c])) + py * op(up[c]) for c in range(3)]
+    sx = (F64(col) + 0.5) / w
+    sy = (F64(row) + 0.5) / h
+    px = (2.0 * sx - 1.0) * tan_op
+    py = -(2.0 * sy - 1.0) * tan_op / aspect_op
+    d = [(fwd_op[c] + px * right_op[c]) + py * up_op[c] for c in range(3)]
     norm = dr.sqrt((d[0] * d[0] + d[1] * d[1]) + d[2] * d[2])
     return dev.Vector3d(d[0] / norm, d[1] / norm, d[2] / norm), row, col
 
@@ -226,7 +228,8 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     cam32 = np.asarray(pose.position, np.float64).astype(np.float32)
     # the host hands float32(position) to the tracer, which subtracts the shift in float64 and rounds
     o_local = (cam32.astype(np.float64) - tracer.shift).astype(np.float32)
-    o_local = dev.Point3f(*[dev.opaque(F, float(x)) for x in o_local])
+    cam_ops = dev.opaques([*o_local, *cam64])  # the tracing-frame origin (float32 values), the float64 position
+    o_local = dev.Point3f(*[F(x) for x in cam_ops[:3]])
     mark("camera_rays_ms", d64, d32)
 
     # 2. closest hits
@@ -245,7 +248,7 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     ng_len = dr.maximum(dr.sqrt((ng.x * ng.x + ng.y * ng.y) + ng.z * ng.z), 1e-30)
     ng = dev.Vector3d(ng.x / ng_len, ng.y / ng_len, ng.z / ng_len)
     p_bary = (tri[0] * w[0] + tri[1] * w[1]) + tri[2] * w[2]
-    ray_o = dev.Point3d(*[dev.opaque(F64, float(x)) for x in cam64])
+    ray_o = dev.Point3d(*cam_ops[3:])
     denom = einsum_dot(d64, ng)
     ok = dr.abs(denom) > 1e-12
     t_plane = einsum_dot(tri[0] - ray_o, ng) / dr.select(ok, denom, 1.0)
@@ -314,7 +317,6 @@ def _motion(dev, scene, tables, position, prim, valid, row, col, t_s, prev_t_s, 
     from suite.core.gbuffer import _previous_transforms
 
     dr, F64, I = dev.dr, dev.Float64, dev.Int32
-    op = lambda x: dev.opaque(F64, float(x))  # noqa: E731
     prev = position
     if scene.object_animations:
         table = dev.to_device(_previous_transforms(scene, t_s, prev_t_s).reshape(-1), F64)
@@ -325,16 +327,18 @@ def _motion(dev, scene, tables, position, prim, valid, row, col, t_s, prev_t_s, 
                              for i in range(3)])
     pose = scene.camera.pose_at(prev_t_s)
     forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
-    cam = dev.Point3d(*[op(x) for x in np.asarray(pose.position, np.float64)])
-    rel = prev - cam
-    lx = _dot(rel, dev.Vector3d(*[op(x) for x in right]))
-    ly = _dot(rel, dev.Vector3d(*[op(x) for x in up]))
-    lz = _dot(rel, dev.Vector3d(*[op(x) for x in forward]))
     tan_x = float(np.tan(np.radians(scene.camera.fov_deg) / 2.0))
     aspect = width / height
+    ops = dev.opaques([*np.asarray(pose.position, np.float64), *right, *up, *forward, tan_x, aspect, width, height])
+    cam = dev.Point3d(*ops[0:3])
+    rel = prev - cam
+    lx = _dot(rel, dev.Vector3d(*ops[3:6]))
+    ly = _dot(rel, dev.Vector3d(*ops[6:9]))
+    lz = _dot(rel, dev.Vector3d(*ops[9:12]))
+    tan_op, aspect_op, w_op, h_op = ops[12:16]
     safe_z = dr.select(dr.abs(lz) > 1e-12, lz, 1e-12)
-    x = 0.5 * (1.0 + lx / (safe_z * op(tan_x))) * op(width)
-    y = 0.5 * (1.0 - ly * op(aspect) / (safe_z * op(tan_x))) * op(height)
+    x = 0.5 * (1.0 + lx / (safe_z * tan_op)) * w_op
+    y = 0.5 * (1.0 - ly * aspect_op / (safe_z * tan_op)) * h_op
     mx = dev.Float(x - (F64(col) + 0.5))
     my = dev.Float(y - (F64(row) + 0.5))
     return dr.select(valid, dev.Vector2f(mx, my), dev.Vector2f(0.0, 0.0))
