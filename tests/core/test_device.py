@@ -308,3 +308,41 @@ def test11_frame_scalars_read_from_one_copied_block_give_the_same_gbuffer(backen
     assert (other_copies > plain_copies) == dev.is_cuda  # the blocks are explicit, counted copies
     for name in fields:
         assert np.array_equal(getattr(plain, name), getattr(other, name)), name
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("name", ["arena", "gallery"])
+def test12_recorded_kernels_replay_later_frames_exactly_without_recording_again(backend, name):
+    """The G-buffer and the visibility pass are recorded on their first calls (per resolution and light count) and
+    replayed afterwards: frame after frame (a moving object and motion vectors on arena, alpha-tested surfaces on
+    gallery, lights moved between frames) a replay gives what the same kernels give traced afresh, bit for bit, and
+    no new recording is made."""
+    import dataclasses
+
+    from suite.core.device import render_gbuffer
+    from suite.core.device.shading import _visibility_kernel, point_light_visibility
+
+    scene = load(name)
+    tracer = make(backend, scene)
+    dev = tracer.device
+    fields = ["position", "normal", "geo_normal", "albedo", "depth", "prim", "motion", "emission"]
+    recordings = []
+    for i, t_s in enumerate((0.3, 0.9, 1.7, 2.4, 3.1, 3.6)):
+        g = render_gbuffer(scene, tracer, t_s, RES, t_s - 0.05)
+        fresh = render_gbuffer(scene, tracer, t_s, RES, t_s - 0.05, stages=True)  # traced op by op, not replayed
+        a, b = g.to_host(names=fields), fresh.to_host(names=fields)
+        for f in fields:
+            assert np.array_equal(getattr(a, f), getattr(b, f)), (t_s, f)
+        lights = [dataclasses.replace(lt, position=lt.position + 0.05 * i) for lt in scene.lights_at(t_s)]
+        vis = point_light_visibility(g, lights, tracer)
+        positions = np.array([lt.position for lt in lights], np.float64).reshape(-1)
+        words, _, _ = _visibility_kernel(dev, g.position, g.geo_normal, g.prim, dev.opaques(positions),
+                                         dev.to_device(positions, dev.Float64), g.pixels, len(lights), 32,
+                                         tracer._alpha is not None)
+        assert np.array_equal(dev.to_host(vis.data), dev.to_host(words)), t_s
+        recordings.append((dev._frozen["gbuffer"].n_recordings, dev._frozen["visibility"].n_recordings))
+    # Dr.Jit records again when an input it took for a constant (the same value in its first calls: a camera at
+    # rest, lights not yet moved) changes, and when its inputs first come from a replay; after that, frames replay
+    assert recordings[-1] == recordings[-3] and max(recordings[-1]) <= 3, recordings
+    render_gbuffer(scene, tracer, 0.3, (RES[0] // 2, RES[1] // 2), 0.25)  # another resolution: another recording
+    assert dev._frozen["gbuffer"].n_recordings == recordings[-1][0] + 1

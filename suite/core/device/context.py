@@ -17,6 +17,8 @@ path does (:mod:`suite.core.trace.alpha`), in float64 where it does.
 """
 from __future__ import annotations
 
+import contextlib
+import gc
 import sys
 from dataclasses import dataclass
 
@@ -27,6 +29,8 @@ from suite.core.trace.base import ALPHA_BOX_PAD, MAX_RAY_LENGTH
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 TWO_M23 = 1.1920928955078125e-07  # 2**-23: a float32 ULP at exponent 0
+# Recordings kept per frozen function (one per resolution and set of fields); the least recently used goes first.
+FROZEN_RECORDINGS = 16
 
 
 @dataclass
@@ -57,6 +61,7 @@ class Device:
         self.counters = {"bytes_to_host": 0, "bytes_to_device": 0, "copies_to_host": 0, "copies_to_device": 0}
         self._tables: SceneTables | None = None
         self._zero = None  # UInt32 0 in memory (see opaques)
+        self._frozen = {}  # name -> the recorded kernels of a frozen function (see frozen)
         self._shift = [float(x) for x in tracer.shift]
 
     # ------------------------------------------------------------------------------------------ basics
@@ -79,6 +84,93 @@ class Device:
         if self._zero is None:
             self._zero = dr.opaque(self.UInt32, 0)
         return [dr.gather(F64, block, self._zero + k) for k in range(len(values))]
+
+    # The arrays kernels read through the device (owner, attributes): what a recording must take as its inputs.
+    _KERNEL_ARRAYS = (("tables", ("vpos", "vnrm", "vuv", "faces", "face_material", "face_object", "albedo", "emission",
+                                  "kind", "threshold", "face_tested")),
+                      ("tables.albedo_tex", ("offset", "width", "height", "data")),
+                      ("tables.opacity_tex", ("offset", "width", "height", "data")),
+                      ("tracer", ("_face_table", "_first_face_by_id")),
+                      ("device", ("_zero",)),
+                      ("opaque_group", ("face_table",)),
+                      ("alpha_group", ("face_table",)))
+
+    def _groups(self) -> tuple:
+        """The tracer's (opaque, alpha-tested) sub-scenes where the device's shadow rays use them, else ()."""
+        if self.tracer._alpha is None or self.is_cuda:
+            return ()
+        return self.tracer._alpha_groups() or ()
+
+    def _owner(self, name: str):
+        root = name.split(".")[0]
+        if root in ("opaque_group", "alpha_group"):
+            obj = self._groups()[0 if root == "opaque_group" else 1]
+        else:
+            obj = {"tables": self.tables, "tracer": self.tracer, "device": self}[root]
+        for part in name.split(".")[1:]:
+            obj = getattr(obj, part)
+        return obj
+
+    def kernel_state(self) -> dict:
+        """The device arrays kernels read through this device (scene tables, the tracer's id tables) and the scene
+        they trace, as one PyTree: the inputs a recorded kernel (:meth:`frozen`) is replayed on."""
+        if self.is_cuda and self._zero is None:
+            self._zero = self.dr.opaque(self.UInt32, 0)
+        arrays = {}
+        groups = self._groups()
+        for owner, attrs in self._KERNEL_ARRAYS:
+            if owner.endswith("_group") and not groups:
+                continue
+            obj = self._owner(owner)
+            for attr in attrs:
+                value = getattr(obj, attr, None)
+                if value is not None:
+                    arrays[f"{owner}:{attr}"] = value
+        scenes = [self.tracer.query_scene] + [grp.mscene for grp in groups if grp.mscene is not None]
+        return {"arrays": arrays, "scenes": scenes}
+
+    @contextlib.contextmanager
+    def _bound(self, arrays: dict):
+        """Points the owners' attributes at ``arrays`` (a recording's input variables) for the duration."""
+        saved = []
+        try:
+            for key, value in arrays.items():
+                owner, attr = key.split(":")
+                obj = self._owner(owner)
+                saved.append((obj, attr, getattr(obj, attr)))
+                setattr(obj, attr, value)
+            yield
+        finally:
+            for obj, attr, value in reversed(saved):
+                setattr(obj, attr, value)
+
+    def frozen(self, name: str, fn):
+        """``fn`` recorded on its first call and replayed afterwards (Dr.Jit's ``dr.freeze``): a replay launches the
+        recorded kernels on the new inputs without tracing any Python, which on a GPU costs as much as the work of
+        a 1080p G-buffer. ``fn``'s Dr.Jit arguments are its inputs; its plain Python arguments select a recording
+        (one per resolution, say); the arrays it reads through this device (:meth:`kernel_state`) are handed in
+        too, bound to the device's attributes while it is recorded. A tracer whose queries go to something other
+        than a Mitsuba scene (a test's wrapper) runs ``fn`` directly."""
+        dr = self.dr
+        if not isinstance(self.tracer.query_scene, self.m.Scene):
+            return fn
+        rec = self._frozen.get(name)
+        if rec is None:
+            def run(state, *args):  # runs while recording only
+                # No garbage collection meanwhile: freeing an array that an earlier, unrelated computation left to
+                # the collector can enqueue a host function on the device, which a recording cannot hold (Dr.Jit
+                # then aborts the process).
+                enabled = gc.isenabled()
+                gc.disable()
+                try:
+                    with self._bound(state["arrays"]):
+                        return fn(*args)
+                finally:
+                    if enabled:
+                        gc.enable()
+
+            rec = self._frozen[name] = dr.freeze(run, limit=FROZEN_RECORDINGS, warn_after=FROZEN_RECORDINGS + 1)
+        return lambda *args: rec(self.kernel_state(), *args)
 
     def arange(self, n: int):
         return self.dr.arange(self.UInt32, int(n))

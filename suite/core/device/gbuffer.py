@@ -160,15 +160,24 @@ class DeviceGBuffer:
                     dev.to_host(self.get("u"), np.float32), dev.to_host(self.get("v"), np.float32))
 
 
+def camera_scalars(pose, fov_deg: float, width: int, height: int) -> list:
+    """The per-frame scalars of :func:`camera_rays` (13 values: sizes, tan of the half angle, aspect, camera basis)."""
+    forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
+    tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
+    return [width, height, tan_x, width / height, *forward, *right, *up]
+
+
 def camera_rays(dev, pose, fov_deg: float, width: int, height: int):
     """Pixel-centre rays as :func:`suite.core.gbuffer.camera_rays` computes them in float64, on the device: returns
     unit directions (Vector3d, row-major from the top-left pixel). Bit-identical to the host on ``llvm_ad_rgb``."""
+    return camera_rays_from(dev, dev.opaques(camera_scalars(pose, fov_deg, width, height)), width, height)
+
+
+def camera_rays_from(dev, ops, width: int, height: int):
+    """:func:`camera_rays` from the values of :func:`camera_scalars` on the device (read from memory: no
+    recompilation per frame; exact division)."""
     dr, F64, U = dev.dr, dev.Float64, dev.UInt32
-    forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
-    tan_x = float(np.tan(np.radians(fov_deg) / 2.0))
-    aspect = width / height
-    # read from memory: no recompilation per frame; exact division
-    w, h, tan_op, aspect_op, *basis = dev.opaques([width, height, tan_x, aspect, *forward, *right, *up])
+    w, h, tan_op, aspect_op, *basis = ops
     fwd_op, right_op, up_op = basis[0:3], basis[3:6], basis[6:9]
     idx = dev.arange(width * height)
     w_u = dev.opaque(U, width)  # a broadcast scalar: a gathered divisor reads 0 in the masked tail lanes of a packet
@@ -197,39 +206,80 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
                    stages: bool = False, keep_hits: bool = False) -> DeviceGBuffer:
     """Pixel-centre primary rays for the camera at ``t_s``, on the tracer's device. ``stages=True`` evaluates camera
     rays, tracing and attributes separately and records their wall times in ``stage_ms`` (for the benchmarks; the
-    default fuses everything into one kernel). ``keep_hits`` also stores the hits' barycentrics (``u``, ``v``)."""
+    default fuses everything into one kernel). ``keep_hits`` also stores the hits' barycentrics (``u``, ``v``).
+
+    The fused kernel is recorded once per (resolution, fields kept) and replayed on later frames
+    (:meth:`~suite.core.device.context.Device.frozen`): the host prepares the frame's scalars (camera, previous
+    camera, object transforms) and hands them in with the scene's tables, so a replay traces no Python at all."""
     import time
 
-    from suite.core.gbuffer import check_resolution
+    from suite.core.gbuffer import _previous_transforms, check_resolution
 
     dev = tracer.device
     if dev is None:
         raise ValueError(f"backend {tracer.name} has no device path")
-    dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
+    dr, I = dev.dr, dev.Int32
     width, height = check_resolution(resolution or scene.camera.resolution)
     tracer.update(t_s)
     tables = dev.tables
     pose = scene.camera.pose_at(t_s)
     n = width * height
+    # the frame's scalars: camera rays, then the tracing-frame origin (the host hands float32(position) to the
+    # tracer, which subtracts the shift in float64 and rounds) and the float64 position, then the previous camera
+    cam64 = np.asarray(pose.position, np.float64)
+    o_local = (cam64.astype(np.float32).astype(np.float64) - tracer.shift).astype(np.float32)
+    scalars = camera_scalars(pose, scene.camera.fov_deg, width, height) + [*o_local, *cam64]
+    motion_table = None
+    if prev_t_s is not None:
+        scalars += _motion_scalars(scene, prev_t_s, width, height)
+        if scene.object_animations:
+            motion_table = dev.to_device(_previous_transforms(scene, t_s, prev_t_s).reshape(-1), dev.Float64)
     stage_ms = {}
-    clock = [time.perf_counter()]
+    if stages:
+        clock = [time.perf_counter()]
 
-    def mark(name, *values):
-        if stages:
+        def mark(name, *values):
             dev.eval(*values)
             now = time.perf_counter()
             stage_ms[name] = 1e3 * (now - clock[0])
             clock[0] = now
 
+        out = _gbuffer_kernel(dev, dev.opaques(scalars), motion_table, width, height, keep_hits,
+                              prev_t_s is not None, mark)
+    else:
+        out = dev.frozen("gbuffer", _gbuffer_kernel)(
+            dev, dev.opaques(scalars), motion_table, width, height, keep_hits, prev_t_s is not None, None)
+        dev.sync()
+    traced = out.pop("traced", None)
+    g = DeviceGBuffer(device=dev, width=width, height=height, t_s=float(t_s),
+                      camera_position=np.asarray(pose.position, np.float32), valid=None, view_dir=None,
+                      material=None, kind=None, camera=(pose, float(scene.camera.fov_deg)),
+                      **{name: out.get(name) for name in ("position", "normal", "geo_normal", "albedo", "emission",
+                                                          "depth", "prim", "u", "v", "motion")})
+    # Cheap expressions of the stored primitive ids, fused into whatever kernel reads them.
+    g.valid = g.prim >= 0
+    g.material = dr.select(g.valid, dr.gather(I, tables.face_material, dr.maximum(g.prim, 0), g.valid), -1)
+    g.rays = n if traced is None else dev.sum_u32(traced)
+    tracer.counters["rays_intersect"] += g.rays
+    g.stage_ms = stage_ms
+    return g
+
+
+def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hits: bool, with_motion: bool,
+                    mark) -> dict:
+    """The G-buffer's fields from the frame's scalars (:func:`render_gbuffer`), evaluated: one kernel, or one per
+    stage where ``mark`` evaluates and times them. Reads every array through ``dev`` (its tables, the tracer's
+    scene and id tables), which a recording binds to its inputs."""
+    dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
+    tables = dev.tables
+    n = width * height
+    mark = mark or (lambda name, *values: None)
+
     # 1. camera rays (float64, then the float32 rays the tracer gets, as on the host)
-    d64, row, col = camera_rays(dev, pose, scene.camera.fov_deg, width, height)
+    d64, row, col = camera_rays_from(dev, scalars[:13], width, height)
     d32 = dev.Vector3f(d64)
-    cam64 = np.asarray(pose.position, np.float64)
-    cam32 = np.asarray(pose.position, np.float64).astype(np.float32)
-    # the host hands float32(position) to the tracer, which subtracts the shift in float64 and rounds
-    o_local = (cam32.astype(np.float64) - tracer.shift).astype(np.float32)
-    cam_ops = dev.opaques([*o_local, *cam64])  # the tracing-frame origin (float32 values), the float64 position
-    o_local = dev.Point3f(*[F(x) for x in cam_ops[:3]])
+    o_local = dev.Point3f(*[F(x) for x in scalars[13:16]])
+    ray_o = dev.Point3d(*scalars[16:19])
     mark("camera_rays_ms", d64, d32)
 
     # 2. closest hits
@@ -248,7 +298,6 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     ng_len = dr.maximum(dr.sqrt((ng.x * ng.x + ng.y * ng.y) + ng.z * ng.z), 1e-30)
     ng = dev.Vector3d(ng.x / ng_len, ng.y / ng_len, ng.z / ng_len)
     p_bary = (tri[0] * w[0] + tri[1] * w[1]) + tri[2] * w[2]
-    ray_o = dev.Point3d(*cam_ops[3:])
     denom = einsum_dot(d64, ng)
     ok = dr.abs(denom) > 1e-12
     t_plane = einsum_dot(tri[0] - ray_o, ng) / dr.select(ok, denom, 1.0)
@@ -273,63 +322,51 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
         tex = tables.albedo_tex.lookup(mat, uvx, uvy, textured)
         albedo = dr.select(textured, dev.Vector3f(F(tex[0]), F(tex[1]), F(tex[2])), albedo)
     zero3 = dev.Vector3f(0.0, 0.0, 0.0)
+    out = {}
     # Not stored when they can be had later for little: zero emission, kind codes (from the material), view
     # directions (from the camera); each costs memory traffic at every pixel of every frame.
-    emission = None
     if tables.any_emissive:
-        emission = dr.select(valid & front, dr.gather(dev.Vector3f, tables.emission, mat, valid), zero3)
-    zero3d = dev.Point3d(0.0, 0.0, 0.0)
-    position = dr.select(valid, position, zero3d)
-    normal = dr.select(valid, dev.Vector3f(ns_view), zero3)
-    geo = dr.select(valid, dev.Vector3f(ng_view), zero3)
-    albedo = dr.select(valid, albedo, zero3)
-    depth = dr.select(valid, t, dr.inf)
-    u = dr.select(valid, u, 0.0) if keep_hits else None
-    v = dr.select(valid, v, 0.0) if keep_hits else None
+        out["emission"] = dr.select(valid & front, dr.gather(dev.Vector3f, tables.emission, mat, valid), zero3)
+    out["position"] = position = dr.select(valid, position, dev.Point3d(0.0, 0.0, 0.0))
+    out["normal"] = dr.select(valid, dev.Vector3f(ns_view), zero3)
+    out["geo_normal"] = dr.select(valid, dev.Vector3f(ng_view), zero3)
+    out["albedo"] = dr.select(valid, albedo, zero3)
+    out["depth"] = dr.select(valid, t, dr.inf)
+    out["prim"] = prim
+    if keep_hits:
+        out["u"], out["v"] = dr.select(valid, u, 0.0), dr.select(valid, v, 0.0)
 
     # 4. motion vectors (camera and rigid object motion), float64
-    motion = None
-    if prev_t_s is not None:
-        motion = _motion(dev, scene, tables, position, prim, valid, row, col, t_s, prev_t_s, width, height)
-
-    g = DeviceGBuffer(device=dev, width=width, height=height, t_s=float(t_s),
-                      camera_position=np.asarray(pose.position, np.float32), position=position, normal=normal,
-                      geo_normal=geo, albedo=albedo, emission=emission, depth=depth, prim=prim, valid=None,
-                      view_dir=None, material=None, kind=None, u=u, v=v, motion=motion,
-                      camera=(pose, float(scene.camera.fov_deg)))
-    extra = [traced] if traced is not None else []
-    if stages:
-        mark("attributes_ms", *g.fields(), *extra)
-    else:
-        dev.eval(*g.fields(), *extra)
-    # Cheap expressions of the stored primitive ids, fused into whatever kernel reads them.
-    g.valid = g.prim >= 0
-    g.material = dr.select(g.valid, dr.gather(I, tables.face_material, dr.maximum(g.prim, 0), g.valid), -1)
-    g.rays = n if traced is None else dev.sum_u32(traced)
-    tracer.counters["rays_intersect"] += g.rays
-    g.stage_ms = stage_ms
-    return g
+    if with_motion:
+        out["motion"] = _motion(dev, tables, position, prim, valid, row, col, scalars[19:], motion_table)
+    if traced is not None:
+        out["traced"] = traced
+    mark("attributes_ms", *out.values())
+    dr.eval(*out.values())
+    return out
 
 
-def _motion(dev, scene, tables, position, prim, valid, row, col, t_s, prev_t_s, width, height):
+def _motion_scalars(scene, prev_t_s: float, width: int, height: int) -> list:
+    """The per-frame scalars of :func:`_motion` (16 values: the previous camera's position and basis, tan of the
+    half angle, aspect, sizes)."""
+    pose = scene.camera.pose_at(prev_t_s)
+    forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
+    tan_x = float(np.tan(np.radians(scene.camera.fov_deg) / 2.0))
+    return [*np.asarray(pose.position, np.float64), *right, *up, *forward, tan_x, width / height, width, height]
+
+
+def _motion(dev, tables, position, prim, valid, row, col, ops, table):
     """Previous-frame pixel position minus the current one (the motion of :func:`suite.core.gbuffer.trace_primary` on
-    the device, operation for operation)."""
-    from suite.core.gbuffer import _previous_transforms
-
+    the device, operation for operation). ``ops``: the values of :func:`_motion_scalars` on the device; ``table``:
+    the objects' previous-frame transforms (12 float64 per object), None without animated objects."""
     dr, F64, I = dev.dr, dev.Float64, dev.Int32
     prev = position
-    if scene.object_animations:
-        table = dev.to_device(_previous_transforms(scene, t_s, prev_t_s).reshape(-1), F64)
+    if table is not None:
         obj = dr.gather(I, tables.face_object, dr.maximum(prim, 0), valid)
         base = dev.UInt32(dr.maximum(obj, 0)) * 12
         r = [dr.gather(F64, table, base + k, valid) for k in range(12)]
         prev = dev.Point3d(*[((prev.x * r[4 * i] + prev.y * r[4 * i + 1]) + prev.z * r[4 * i + 2]) + r[4 * i + 3]
                              for i in range(3)])
-    pose = scene.camera.pose_at(prev_t_s)
-    forward, right, up = (np.asarray(v, np.float64) for v in pose.basis())
-    tan_x = float(np.tan(np.radians(scene.camera.fov_deg) / 2.0))
-    aspect = width / height
-    ops = dev.opaques([*np.asarray(pose.position, np.float64), *right, *up, *forward, tan_x, aspect, width, height])
     cam = dev.Point3d(*ops[0:3])
     rel = prev - cam
     lx = _dot(rel, dev.Vector3d(*ops[3:6]))

@@ -192,11 +192,32 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
         return DeviceVisibility(dev, g.width, g.height, 0, 0, dr.zeros(U, 1), 0)
     unroll = UNROLL_LIGHTS[dev.name] if unroll is None else int(unroll)
     positions = np.array([lt.position for lt in lights], np.float64)
-    lp, _ = _light_table(dev, lights)
-    n64 = dev.Vector3d(g.geo_normal)
-    o64 = dev.offset_origin(g.position, n64)  # once per pixel: the same for every light
-    o_local = dev.local_f32(o64)
+    # the lights' positions: scalars for the lights written out, a table for the loop (both read from memory)
+    light_ops = dev.opaques(positions.reshape(-1)) if any(min(n_lights, 32 * k + 32) - 32 * k <= unroll
+                                                          for k in range(words)) else []
+    lp = dev.to_device(positions.reshape(-1), dev.Float64)
     alpha = dev.tracer._alpha is not None
+    # recorded once per (pixels, lights, kernel shape) and replayed on later frames (Device.frozen)
+    out, count, extra = dev.frozen("visibility", _visibility_kernel)(
+        dev, g.position, g.geo_normal, g.prim, light_ops, lp, n, n_lights, unroll, alpha)
+    dev.sync()
+    rays = dev.sum_u32(count, n_lights)
+    dev.tracer.counters["rays_occluded"] += rays
+    if alpha:
+        dev.tracer.counters["rays_intersect"] += dev.sum_u32(extra, n_lights * (MAX_ALPHA_LAYERS + 1))
+    return DeviceVisibility(dev, g.width, g.height, n_lights, 4 * words, out, rays)
+
+
+def _visibility_kernel(dev, position, geo_normal, prim, light_ops, lp, n: int, n_lights: int, unroll: int,
+                       alpha: bool):
+    """The bits, shadow rays per pixel and alpha-walk queries per pixel of :func:`point_light_visibility`,
+    evaluated."""
+    dr, U = dev.dr, dev.UInt32
+    words = -(-n_lights // 32)
+    valid = prim >= 0
+    n64 = dev.Vector3d(geo_normal)
+    o64 = dev.offset_origin(position, n64)  # once per pixel: the same for every light
+    o_local = dev.local_f32(o64)
     data = dr.zeros(U, n * words) if words > 1 else None
     pixel = dev.arange(n)
     count = dr.zeros(U, n)  # shadow rays per pixel (above the horizon)
@@ -204,7 +225,7 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
     word = None
 
     def trace_one(light_pos, bit, word, count, extra):
-        d, length, above = _shadow_ray(dev, o64, n64, g.valid, light_pos)
+        d, length, above = _shadow_ray(dev, o64, n64, valid, light_pos)
         blocked, traced = dev.occluded_rays(o_local, d, length, above)
         word = word | dr.select(above & ~blocked, bit, U(0))
         count = count + dr.select(above, U(1), U(0))
@@ -217,7 +238,7 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
         word = dr.zeros(U, n)
         if hi - lo <= unroll:
             for li in range(lo, hi):
-                p = dev.Point3d(*[dev.opaque(dev.Float64, float(x)) for x in positions[li]])
+                p = dev.Point3d(*light_ops[3 * li:3 * li + 3])
                 word, count, extra = trace_one(p, dev.opaque(U, 1 << (li - lo)), word, count, extra)
         else:
             base, end = dev.opaque(U, lo), dev.opaque(U, hi)
@@ -233,12 +254,8 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
         if words > 1:
             dr.scatter(data, word, pixel * words + k)
     out = word if words == 1 else data
-    dev.eval(out, count, *([extra] if alpha else []))
-    rays = dev.sum_u32(count, n_lights)
-    dev.tracer.counters["rays_occluded"] += rays
-    if alpha:
-        dev.tracer.counters["rays_intersect"] += dev.sum_u32(extra, n_lights * (MAX_ALPHA_LAYERS + 1))
-    return DeviceVisibility(dev, g.width, g.height, n_lights, 4 * words, out, rays)
+    dr.eval(out, count, *([extra] if alpha else []))
+    return out, count, extra if alpha else None
 
 
 def shade_point_lights(g, lights, visibility: DeviceVisibility, ambient=None,
