@@ -62,6 +62,7 @@ class Device:
         self._tables: SceneTables | None = None
         self._zero = None  # UInt32 0 in memory (see opaques)
         self._frozen = {}  # name -> the recorded kernels of a frozen function (see frozen)
+        self.record_kernels = True  # False: frozen() runs its function afresh every call (tests, debugging)
         self._shift = [float(x) for x in tracer.shift]
 
     # ------------------------------------------------------------------------------------------ basics
@@ -152,7 +153,7 @@ class Device:
         too, bound to the device's attributes while it is recorded. A tracer whose queries go to something other
         than a Mitsuba scene (a test's wrapper) runs ``fn`` directly."""
         dr = self.dr
-        if not isinstance(self.tracer.query_scene, self.m.Scene):
+        if not self.record_kernels or not isinstance(self.tracer.query_scene, self.m.Scene):
             return fn
         rec = self._frozen.get(name)
         if rec is None:
