@@ -25,7 +25,8 @@ smoke: $(STAMP)
 
 # The quick preset (each method's own grid), the shared cross-method matrix (suite/harness/compare.toml, timed by
 # the work clock, so the two worker processes' runs do not skew each other's times), the method benchmarks whose
-# figures the report sections show, then the report.
+# figures the report sections show, the rendering core's benchmarks on every backend that works here (a GPU
+# included), then the report.
 COMPARE_WORKERS ?= 2
 reproduce: $(STAMP)
 	$(VENV)/bin/splitbench reproduce --preset quick --no-report
@@ -34,6 +35,8 @@ reproduce: $(STAMP)
 	$(VENV)/bin/splitbench bench quake_drt
 	$(VENV)/bin/splitbench bench rail
 	$(VENV)/bin/splitbench bench layered_pvs
+	$(VENV)/bin/splitbench bench core --backend all
+	$(VENV)/bin/splitbench bench tracing --scene all --backend all --out results
 	$(VENV)/bin/splitbench report
 
 report: $(STAMP)

@@ -244,6 +244,60 @@ def scenes_section(results_root: Path) -> str:
     return "<h2>Scenes</h2><p>" + note + "</p>" + table_html(pd.DataFrame(rows))
 
 
+def core_bench_section(results_root: Path, out: Path) -> str:
+    """The rendering core's cost per stage on each backend measured (``splitbench bench core``: ms, the device time
+    alone for Dr.Jit backends, rays, pixels, bytes, and the ratios against the backend's raw queries with their
+    goals) and the tracing interface's overhead (``splitbench bench tracing``), from the stored bench documents:
+    what a GPU changes, where one was measured."""
+    from suite.harness.reporting import load_bench
+
+    core, tracing = load_bench("core", None, results_root), load_bench("tracing", None, results_root)
+    parts = ["<h2 id='core'>Rendering core per backend</h2>"]
+    if core is None and tracing is None:
+        return parts[0] + ("<p><em>No stored core benchmarks. <code>splitbench bench core --backend all</code> and "
+                           "<code>splitbench bench tracing --scene all --backend all --out results</code> store them "
+                           "under <code>results/bench/</code>.</em></p>")
+    for doc, name in ((core, "core"), (tracing, "tracing")):
+        if doc is not None:
+            host, git = doc.get("host") or {}, doc.get("git") or {}
+            parts.append(f"<p>{name}: measured on {esc(host.get('node', '?'))} ({esc(host.get('platform', '?'))}, "
+                         f"{esc(host.get('cpu_count', '?'))} CPUs), git {esc(str(git.get('commit', '?'))[:12])}.</p>")
+    if core is not None:
+        rows, ratios = [], []
+        for r in core.get("results", []):
+            w, h = r["resolution"]
+            setting = f"{r['scene']} {w}x{h}, {r['backend']} [{r['path']}]"
+            for st in r["stages"]:
+                rows.append({"setting": setting, "stage": st["stage"], "ms": st["ms"],
+                             "kernel_ms": st.get("kernel_ms", np.nan), "rays": st["rays"], "pixels": st["pixels"],
+                             "bytes": st.get("bytes", np.nan), "note": st.get("note", "")})
+            ratios.append({"setting": setting, "lights": r["lights"],
+                           "G-buffer / raw intersect (goal <= 2)": r.get("gbuffer_over_raw_intersect", np.nan),
+                           "device time alone": r.get("gbuffer_over_raw_intersect_kernels", np.nan),
+                           "visibility raw / pass (goal >= 0.9)": r.get("visibility_raw_over_pass", np.nan),
+                           "device time alone ": r.get("visibility_raw_over_pass_kernels", np.nan)})
+        stages, ratio_table = pd.DataFrame(rows), pd.DataFrame(ratios)
+        write_csv(stages, out / "core_stages.csv")
+        parts.append("<p>One frame's stages (median ms of interleaved calls; <i>kernel_ms</i>: the execution time of "
+                     "the launches a call makes, from Dr.Jit's kernel history, without the host's per-call costs). "
+                     "<a href='core_stages.csv'>core_stages.csv</a></p>" + table_html(ratio_table)
+                     + "<details><summary>every stage</summary>" + table_html(stages) + "</details>")
+    if tracing is not None:
+        rows = []
+        for r in tracing.get("results", [tracing]):
+            row = {"scene": r.get("scene"), "backend": r.get("backend"), "interface": r.get("interface", "numpy"),
+                   "rays": r.get("rays")}
+            for query in ("occluded", "intersect"):
+                q = r.get(query) or {}
+                row[f"{query} suite/raw (goal >= 0.9)"] = q.get("ratio", np.nan)
+                row[f"{query} device time alone"] = q.get("kernel_ratio", np.nan)
+                row[f"{query} queries per ray"] = q.get("queries_per_ray", np.nan)
+            rows.append(row)
+        parts.append("<p>The tracing interface against the backend's own query on the same shadow rays "
+                     "(Dr.Jit: rays in device memory).</p>" + table_html(pd.DataFrame(rows)))
+    return "".join(parts)
+
+
 def focus_labels(runs: pd.DataFrame, record: dict | None) -> list[str]:
     """The run labels a per-run plot shows: the compare matrix's first scene over TCP when the results hold it,
     else the first :data:`FOCUS_RUNS` runs."""
@@ -332,10 +386,12 @@ def build(results_root, out_dir) -> Path:
         cross = compare.sections(compare.run_table(loaded), loaded, Path(results_root), out)
         head.append("<nav>" + " · ".join(f"<a href='#{a}'>{t}</a>" for a, t in (
             ("answer", "answer"), ("pareto", "Pareto fronts"), ("floors", "noise floors"),
-            ("claims", "paper claims"), ("pages", "method images"), ("hardware", "hardware"), ("growth", "growth"),
+            ("claims", "paper claims"), ("pages", "method images"), ("hardware", "hardware"), ("core", "core"),
+            ("growth", "growth"),
             ("methods", "method sections"), ("runs", "run matrix"))) + "</nav>")
         body += [cross["answer"], cross["pareto"], cross["floors"], claims_section(gather_claims(out), out),
-                 cross["pages"], cross["hardware"], cross["growth"], "<span id='methods'></span>"]
+                 cross["pages"], cross["hardware"], core_bench_section(Path(results_root), out), cross["growth"],
+                 "<span id='methods'></span>"]
         for name, fragment in fragments:
             body.append(f"<h2>Method: {esc(method_title(name))}</h2>{fragment}")
 

@@ -131,3 +131,25 @@ def test_the_report_marks_scenes_that_were_not_available(tmp_path):
     html = scenes_section(tmp_path)
     assert "not measured: oa:kaos" in html and "install the OpenArena packages" in html
     assert scenes_section(tmp_path / "nowhere") == ""
+
+
+def test08_the_report_shows_the_core_benchmarks_per_backend(tmp_path):
+    """What `splitbench bench core` and `bench tracing` stored: each backend's stages with ms, device time, rays and
+    bytes, the ratios against the raw queries with their goals, and the tracing overhead; a hint where none is."""
+    from reports.build import core_bench_section
+    from suite.harness import cli
+
+    assert "No stored core benchmarks" in core_bench_section(tmp_path, tmp_path)
+    assert cli.main(["bench", "core", "--scene", "living_room", "--backend", "embree,mitsuba-llvm", "--resolution",
+                     "24x14", "--repeats", "1", "--out", str(tmp_path)]) == 0
+    assert cli.main(["bench", "tracing", "--scene", "cornell", "--backend", "embree,mitsuba-llvm", "--repeats", "1",
+                     "--max-rays", "2000", "--resolution", "64x36", "--out", str(tmp_path)]) == 0
+    html = core_bench_section(tmp_path, tmp_path)
+    stages = pd.read_csv(tmp_path / "core_stages.csv")
+    assert {"embree", "mitsuba-llvm"} == {s.split(", ")[1].split(" ")[0] for s in stages["setting"]}
+    llvm = stages[stages["setting"].str.contains("mitsuba-llvm")].set_index("stage")
+    assert llvm.loc["gbuffer", "kernel_ms"] > 0 and llvm.loc["visibility", "rays"] > 0
+    assert llvm.loc["copy_gbuffer_to_host", "bytes"] > 0
+    for text in ("G-buffer / raw intersect (goal &lt;= 2)", "visibility raw / pass (goal &gt;= 0.9)",
+                 "occluded suite/raw (goal &gt;= 0.9)", "cornell", "device (llvm_ad_rgb)"):
+        assert text in html, text
