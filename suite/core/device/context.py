@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import sys
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,7 @@ class Device:
         self._zero = None  # UInt32 0 in memory (see opaques)
         self._frozen = {}  # name -> the recorded kernels of a frozen function (see frozen)
         self.record_kernels = True  # False: frozen() runs its function afresh every call (tests, debugging)
+        self._frozen_lock = threading.RLock()  # one recorded call at a time (a recording rebinds attributes)
         self._shift = [float(x) for x in tracer.shift]
 
     # ------------------------------------------------------------------------------------------ basics
@@ -150,8 +152,9 @@ class Device:
         recorded kernels on the new inputs without tracing any Python, which on a GPU costs as much as the work of
         a 1080p G-buffer. ``fn``'s Dr.Jit arguments are its inputs; its plain Python arguments select a recording
         (one per resolution, say); the arrays it reads through this device (:meth:`kernel_state`) are handed in
-        too, bound to the device's attributes while it is recorded. A tracer whose queries go to something other
-        than a Mitsuba scene (a test's wrapper) runs ``fn`` directly."""
+        too, bound to the device's attributes while it is recorded (so recorded calls on one device take turns, and
+        no other thread should trace kernels on it meanwhile). A tracer whose queries go to something other than a
+        Mitsuba scene (a test's wrapper) runs ``fn`` directly."""
         dr = self.dr
         if not self.record_kernels or not isinstance(self.tracer.query_scene, self.m.Scene):
             return fn
@@ -171,7 +174,12 @@ class Device:
                         gc.enable()
 
             rec = self._frozen[name] = dr.freeze(run, limit=FROZEN_RECORDINGS, warn_after=FROZEN_RECORDINGS + 1)
-        return lambda *args: rec(self.kernel_state(), *args)
+
+        def call(*args):
+            with self._frozen_lock:
+                return rec(self.kernel_state(), *args)
+
+        return call
 
     def arange(self, n: int):
         return self.dr.arange(self.UInt32, int(n))
