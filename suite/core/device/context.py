@@ -114,13 +114,15 @@ class Device:
             obj = getattr(obj, part)
         return obj
 
-    def kernel_state(self) -> dict:
-        """The device arrays kernels read through this device (scene tables, the tracer's id tables) and the scene
-        they trace, as one PyTree: the inputs a recorded kernel (:meth:`frozen`) is replayed on."""
+    def kernel_state(self, shadow_rays: bool = False) -> dict:
+        """The device arrays kernels read through this device (scene tables, the tracer's id tables) and the scenes
+        they trace, as one PyTree: the inputs a recorded kernel (:meth:`frozen`) is replayed on. ``shadow_rays``:
+        with the opaque and alpha-tested sub-scenes shadow rays query (built on first use, and again after animated
+        objects moved, so kernels that trace no shadow rays leave them alone)."""
         if self.is_cuda and self._zero is None:
             self._zero = self.dr.opaque(self.UInt32, 0)
         arrays = {}
-        groups = self._groups()
+        groups = self._groups() if shadow_rays else ()
         for owner, attrs in self._KERNEL_ARRAYS:
             if owner.endswith("_group") and not groups:
                 continue
@@ -147,14 +149,15 @@ class Device:
             for obj, attr, value in reversed(saved):
                 setattr(obj, attr, value)
 
-    def frozen(self, name: str, fn):
+    def frozen(self, name: str, fn, shadow_rays: bool = False):
         """``fn`` recorded on its first call and replayed afterwards (Dr.Jit's ``dr.freeze``): a replay launches the
         recorded kernels on the new inputs without tracing any Python, which on a GPU costs as much as the work of
         a 1080p G-buffer. ``fn``'s Dr.Jit arguments are its inputs; its plain Python arguments select a recording
         (one per resolution, say); the arrays it reads through this device (:meth:`kernel_state`) are handed in
         too, bound to the device's attributes while it is recorded (so recorded calls on one device take turns, and
         no other thread should trace kernels on it meanwhile). A tracer whose queries go to something other than a
-        Mitsuba scene (a test's wrapper) runs ``fn`` directly."""
+        Mitsuba scene (a test's wrapper) runs ``fn`` directly. ``shadow_rays``: ``fn`` traces shadow rays
+        (:meth:`kernel_state`)."""
         dr = self.dr
         if not self.record_kernels or not isinstance(self.tracer.query_scene, self.m.Scene):
             return fn
@@ -177,7 +180,7 @@ class Device:
 
         def call(*args):
             with self._frozen_lock:
-                return rec(self.kernel_state(), *args)
+                return rec(self.kernel_state(shadow_rays), *args)
 
         return call
 

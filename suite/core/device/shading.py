@@ -198,7 +198,7 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
     lp = dev.to_device(positions.reshape(-1), dev.Float64)
     alpha = dev.tracer._alpha is not None
     # recorded once per (pixels, lights, kernel shape) and replayed on later frames (Device.frozen)
-    out, count, extra = dev.frozen("visibility", _visibility_kernel)(
+    out, count, extra = dev.frozen("visibility", _visibility_kernel, shadow_rays=True)(
         dev, g.position, g.geo_normal, g.prim, light_ops, lp, n, n_lights, unroll, alpha)
     dev.sync()
     rays = dev.sum_u32(count, n_lights)
