@@ -32,6 +32,21 @@ from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 TWO_M23 = 1.1920928955078125e-07  # 2**-23: a float32 ULP at exponent 0
 # Recordings kept per frozen function (one per resolution and set of fields); the least recently used goes first.
 FROZEN_RECORDINGS = 16
+ALIGN_BYTES = 64  # the alignment of host buffers handed to Dr.Jit (see _aligned)
+
+
+def _aligned(a: np.ndarray) -> np.ndarray:
+    """``a`` contiguous and at a 64-byte aligned address (copied only where it is not). Dr.Jit's LLVM backend maps
+    numpy memory and tells aligned from unaligned buffers; a recorded kernel (:meth:`Device.frozen`) records again
+    when that status of an input changes, which numpy's 16-byte alignment made happen at random frames."""
+    a = np.ascontiguousarray(a)
+    if a.ctypes.data % ALIGN_BYTES == 0 or a.nbytes == 0:
+        return a
+    buf = np.empty(a.nbytes + ALIGN_BYTES, np.uint8)
+    start = (-buf.ctypes.data) % ALIGN_BYTES
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
 
 
 @dataclass
@@ -241,9 +256,9 @@ class Device:
         """Uploads a numpy array as Dr.Jit ``dtype`` (for vector types, (N, k) rows) and counts the bytes."""
         a = np.asarray(array)
         if a.ndim == 2:
-            value = dtype(*[np.ascontiguousarray(a[:, c]) for c in range(a.shape[1])])
+            value = dtype(*[_aligned(a[:, c]) for c in range(a.shape[1])])
         else:
-            value = dtype(np.ascontiguousarray(a))
+            value = dtype(_aligned(a))
         self.counters["bytes_to_device"] += int(a.nbytes)
         self.counters["copies_to_device"] += 1
         return value
