@@ -269,9 +269,17 @@ def test11_config_documents_every_parameter_and_every_variant_constructs():
     config = tomllib.loads(CONFIG.read_text())
     defaults = config["defaults"]
     assert set(config["doc"]) == set(defaults)
+    from methods.visibility_bitmap.codecs import unavailable_reason
+
     for name, overrides in [("paper", config["paper"]), *config["variants"].items()]:
         assert set(overrides) <= set(defaults), name
-        VisibilityBitmap({**defaults, **overrides})
+        params = {**defaults, **overrides}
+        base = str(params.get("codec", "none")).split("+")[-1].split(":")[0]
+        if unavailable_reason(base):  # an optional codec this machine lacks: refused by name, in one line
+            with pytest.raises(UserError, match=f"codec '{base}' is unavailable"):
+                VisibilityBitmap(params)
+        else:
+            VisibilityBitmap(params)
 
 
 def test12_registry_finds_the_method_class():
