@@ -103,7 +103,9 @@ def test06_reproduce_runs_the_preset_then_builds_the_report(fake_core, tmp_path,
 def test07_python_dash_m_suite_reports_user_errors_without_traceback(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "suite", "run", "no_such_method", "--out", str(tmp_path / "r")],
                           cwd=REPO, capture_output=True, text=True, timeout=120,
-                          env=dict(os.environ, PYTHONPATH=str(REPO), SPLITBENCH_PROGRESS="0"))
+                          env=dict(os.environ, SPLITBENCH_PROGRESS="0",
+                                   PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH"))
+                                                              if p)))
     assert proc.returncode == 2
     assert proc.stderr.strip() == proc.stderr.strip().splitlines()[0]
     assert "unknown method 'no_such_method'" in proc.stderr and not (tmp_path / "r").exists()
