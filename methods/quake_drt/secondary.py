@@ -555,23 +555,21 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
     args = (scene, t_s, surface, max_depth, skip_faces, branches, emission)
     if compiled and count > 1 and getattr(tracer, "device", None) is None:
         import threading
+        from concurrent.futures import ThreadPoolExecutor
+        from contextlib import nullcontext
 
         from suite.core.pipeline import SerialTracer, kept_worker
 
         serial = SerialTracer(tracer, threading.Lock())
-        if count == 2:
-            with kept_worker() as pool:  # the process's kept worker thread (a new thread costs about 0.3 ms)
-                pending = [pool.submit(_chains, serial, part, *args) for part in parts[1:]]
-                done = [_chains(serial, parts[0], *args)] + [f.result() for f in pending]
-        else:
-            from concurrent.futures import ThreadPoolExecutor
 
-            def run(part):
-                with serial.part():
-                    return _chains(serial, part, *args)
-            with ThreadPoolExecutor(count - 1) as pool:
-                pending = [pool.submit(run, part) for part in parts[1:]]
-                done = [run(parts[0])] + [f.result() for f in pending]
+        def run(part):  # more parts than two: each part's passes take one of SerialTracer's core slots
+            with serial.part() if count > 2 else nullcontext():
+                return _chains(serial, part, *args)
+
+        # two parts: the process's kept worker thread (a new thread costs about 0.3 ms)
+        with kept_worker() if count == 2 else ThreadPoolExecutor(count - 1) as pool:
+            pending = [pool.submit(run, part) for part in parts[1:]]
+            done = [run(parts[0])] + [f.result() for f in pending]
     else:  # the reference, and Dr.Jit (driven from one thread): the parts one after the other
         done = [_chains(tracer, part, *args) for part in parts]
     found = [pt for points, _ in done for pt in points]

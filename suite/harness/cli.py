@@ -407,10 +407,7 @@ def _bench_tracing(argv) -> int:
     for name in scenes:
         scene = runner.load_scene(name)
         for backend in backends:
-            kwargs = {} if args.repeats == 5 else {"repeats": args.repeats}
-            if args.max_rays != 500_000 or resolution != (640, 360):
-                kwargs.update(max_rays=args.max_rays, resolution=resolution)
-            row = bench.run(scene, backend, **kwargs)
+            row = bench.run(scene, backend, max_rays=args.max_rays, repeats=args.repeats, resolution=resolution)
             row.setdefault("backend", backend)
             rows.append(row)
     result = bench_document(rows[0] if len(rows) == 1 else {"results": rows, "goal": 0.9})

@@ -137,8 +137,8 @@ def test10_bench_tracing_prints_suite_and_raw_rates_and_their_ratio(fake_core, c
 
     fake_bench = types.ModuleType("suite.core.trace.bench")
     rates = {"suite_rays_per_s": 2.0e6, "raw_rays_per_s": 4.0e6, "ratio": 0.5}
-    fake_bench.run = lambda scene, backend: {"scene": "toy", "rays": 1000, "repeats": 5,
-                                             "occluded": rates, "intersect": rates}
+    fake_bench.run = lambda scene, backend, **kwargs: {"scene": "toy", "rays": 1000, "repeats": 5,
+                                                       "occluded": rates, "intersect": rates}
     monkeypatch.setitem(sys.modules, "suite.core.trace.bench", fake_bench)
     code, out, _ = _run(capsys, "bench", "tracing", "--scene", "toy", "--backend", "fake")
     assert code == 0 and out.count("suite     2,000,000 rays/s") == 2 and "raw     4,000,000 rays/s" in out

@@ -99,9 +99,14 @@ class Device:
         if not self.is_cuda:
             return [dr.opaque(F64, float(x)) for x in values]
         block = self.to_device(np.asarray(values, np.float64).reshape(-1), F64)
+        zero = self._zero_index()
+        return [dr.gather(F64, block, zero + k) for k in range(len(values))]
+
+    def _zero_index(self):
+        """UInt32 0 in memory, made once (the index :meth:`opaques` reads its block at, on cuda_ad_rgb)."""
         if self._zero is None:
-            self._zero = dr.opaque(self.UInt32, 0)
-        return [dr.gather(F64, block, self._zero + k) for k in range(len(values))]
+            self._zero = self.dr.opaque(self.UInt32, 0)
+        return self._zero
 
     # The arrays kernels read through the device (owner, attributes): what a recording must take as its inputs.
     _KERNEL_ARRAYS = (("tables", ("vpos", "vnrm", "vuv", "faces", "face_material", "face_object", "albedo", "emission",
@@ -134,8 +139,8 @@ class Device:
         they trace, as one PyTree: the inputs a recorded kernel (:meth:`frozen`) is replayed on. ``shadow_rays``:
         with the opaque and alpha-tested sub-scenes shadow rays query (built on first use, and again after animated
         objects moved, so kernels that trace no shadow rays leave them alone)."""
-        if self.is_cuda and self._zero is None:
-            self._zero = self.dr.opaque(self.UInt32, 0)
+        if self.is_cuda:
+            self._zero_index()  # present from the first recording on: the inputs keep one structure
         arrays = {}
         groups = self._groups() if shadow_rays else ()
         for owner, attrs in self._KERNEL_ARRAYS:

@@ -235,7 +235,8 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
         if scene.object_animations:
             motion_table = dev.to_device(_previous_transforms(scene, t_s, prev_t_s).reshape(-1), dev.Float64)
     stage_ms = {}
-    if stages:
+    kernel, mark = dev.frozen("gbuffer", _gbuffer_kernel), None
+    if stages:  # traced stage by stage, each evaluated and timed
         clock = [time.perf_counter()]
 
         def mark(name, *values):
@@ -244,12 +245,9 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
             stage_ms[name] = 1e3 * (now - clock[0])
             clock[0] = now
 
-        out = _gbuffer_kernel(dev, dev.opaques(scalars), motion_table, width, height, keep_hits,
-                              prev_t_s is not None, mark)
-    else:
-        out = dev.frozen("gbuffer", _gbuffer_kernel)(
-            dev, dev.opaques(scalars), motion_table, width, height, keep_hits, prev_t_s is not None, None)
-        dev.sync()
+        kernel = _gbuffer_kernel
+    out = kernel(dev, dev.opaques(scalars), motion_table, width, height, keep_hits, prev_t_s is not None, mark)
+    dev.sync()
     traced = out.pop("traced", None)
     g = DeviceGBuffer(device=dev, width=width, height=height, t_s=float(t_s),
                       camera_position=np.asarray(pose.position, np.float32), valid=None, view_dir=None,

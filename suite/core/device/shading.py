@@ -192,10 +192,10 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
         return DeviceVisibility(dev, g.width, g.height, 0, 0, dr.zeros(U, 1), 0)
     unroll = UNROLL_LIGHTS[dev.name] if unroll is None else int(unroll)
     positions = np.array([lt.position for lt in lights], np.float64)
-    # the lights' positions: scalars for the lights written out, a table for the loop (both read from memory)
-    light_ops = dev.opaques(positions.reshape(-1)) if any(min(n_lights, 32 * k + 32) - 32 * k <= unroll
-                                                          for k in range(words)) else []
-    lp = dev.to_device(positions.reshape(-1), dev.Float64)
+    # the lights' positions (read from memory): scalars where a word's lights are written out, a table where it loops
+    written_out = [min(n_lights, 32 * k + 32) - 32 * k <= unroll for k in range(words)]
+    light_ops = dev.opaques(positions.reshape(-1)) if any(written_out) else []
+    lp = dev.to_device(positions.reshape(-1), dev.Float64) if not all(written_out) else None
     alpha = dev.tracer._alpha is not None
     # recorded once per (pixels, lights, kernel shape) and replayed on later frames (Device.frozen)
     out, count, extra = dev.frozen("visibility", _visibility_kernel, shadow_rays=True)(

@@ -223,11 +223,15 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
     dr = dev.dr
     ray = dev.raw_ray(dev.Point3f(*[dr.full(dev.Float, float(x), pixels) for x in cam]), dev.Vector3f(d64),
                       dr.full(dev.Float, 1e37, pixels))
-    g = dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)
-    t = interleaved([("gbuffer", lambda: dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
-                     ("raw", lambda: dev.raw_intersect(ray))], repeats)
-    k_gb = dev.kernel_ms(lambda: dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s), repeats)
-    k_raw = dev.kernel_ms(lambda: dev.raw_intersect(ray), repeats)
+    def gbuffer():
+        return dgb.render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)
+
+    def raw_intersect():
+        return dev.raw_intersect(ray)
+
+    g = gbuffer()
+    t = interleaved([("gbuffer", gbuffer), ("raw", raw_intersect)], repeats)
+    k_gb, k_raw = dev.kernel_ms(gbuffer, repeats), dev.kernel_ms(raw_intersect, repeats)
     gb = stage("gbuffer", 1e3 * t["gbuffer"], g.rays, note="fused: one kernel", kernel_ms=k_gb)
     stage("raw_intersect", 1e3 * t["raw"], pixels, note="the same camera rays, held in device memory", kernel_ms=k_raw)
     out["gbuffer_over_raw_intersect"] = gb["ms"] / (1e3 * t["raw"])
@@ -235,12 +239,15 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
     vis, vis_rays = counted(lambda: dsh.point_light_visibility(g, lights, tracer))  # shadow rays + alpha walk
     if lights:
         rays_dev = dsh.shadow_rays(g, lights, tracer)
-        t = interleaved([("pass", lambda: dsh.point_light_visibility(g, lights, tracer)),
-                         ("raw", lambda: dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]))],
-                        repeats)
-        k_pass = dev.kernel_ms(lambda: dsh.point_light_visibility(g, lights, tracer), repeats)
-        k_raw = dev.kernel_ms(lambda: dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev]),
-                              repeats)
+
+        def visibility():
+            return dsh.point_light_visibility(g, lights, tracer)
+
+        def raw_occluded():
+            dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev])
+
+        t = interleaved([("pass", visibility), ("raw", raw_occluded)], repeats)
+        k_pass, k_raw = dev.kernel_ms(visibility, repeats), dev.kernel_ms(raw_occluded, repeats)
         stage("visibility", 1e3 * t["pass"], vis_rays, kernel_ms=k_pass)
         stage("raw_occluded", 1e3 * t["raw"], vis.rays, note="the pass's rays, held in device memory", kernel_ms=k_raw)
         out["visibility_raw_over_pass"] = t["raw"] / t["pass"]

@@ -85,8 +85,8 @@ def test06_the_tracing_benchmark_prints_the_environment_with_its_figures(capsys,
 
     fake = types.ModuleType("suite.core.trace.bench")
     rates = {"suite_rays_per_s": 2.0e6, "raw_rays_per_s": 4.0e6, "ratio": 0.5}
-    fake.run = lambda scene, backend: {"scene": "toy", "rays": 1000, "repeats": 5, "occluded": rates,
-                                       "intersect": rates}
+    fake.run = lambda scene, backend, **kwargs: {"scene": "toy", "rays": 1000, "repeats": 5, "occluded": rates,
+                                                 "intersect": rates}
     monkeypatch.setitem(sys.modules, "suite.core.trace.bench", fake)
     monkeypatch.setattr(runner, "backend_names", lambda: ["fake"])
     monkeypatch.setattr(runner, "scene_names", lambda: ["toy"])
