@@ -79,7 +79,8 @@ def run_table(loaded: list[dict]) -> pd.DataFrame:
                "pixels": w * h, "frames": s["frames"], "clients": s.get("clients", 1),
                "light_transport": s.get("light_transport", "direct"), "mode": s["mode"],
                "backend": cfg["config"]["backend"], "measured_on": device_text(cfg),
-               "reference_spp": cfg["config"].get("reference_spp")}
+               "reference_spp": cfg["config"].get("reference_spp"),
+               "omitted": " ".join(s.get("omitted") or [])}
         row.update(mr.evaluate(s))
         rows.append(row)
     return pd.DataFrame(rows)
@@ -464,6 +465,11 @@ def sections(runs: pd.DataFrame, loaded: list[dict], results_root: Path, out_dir
                  f"under every profile. Frame times: {esc(devices)}; the network is simulated."
                  + (f" Skipped (scene not available on the machine): "
                                            f"{esc(', '.join(skipped))}." if skipped else "") + "</p>")
+        left_out = sorted({(str(r["entry"]), str(r["scene"]), str(r["omitted"])) for _, r in cells.iterrows()
+                           if r.get("omitted")})
+        if left_out:  # what a method does not render of a scene (summary `omitted`), beside its errors
+            intro += ("<p>Left out by a method (its errors include them): "
+                      + "; ".join(f"{esc(e)} on {esc(_scene_short(sc))}: {esc(w)}" for e, sc, w in left_out) + ".</p>")
         detail = "".join(f"<h3>{esc(_scene_short(scene))}</h3>" + table_html(t) for scene, t in tables.items())
         wt = wins_table(wins)
         cells_csv = files.csv(cells, "compare_runs.csv")

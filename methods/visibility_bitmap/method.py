@@ -28,6 +28,10 @@ the packed bitmap is read back at the end of ``visibility`` (the encoder needs i
 the received bitmap as it is in ``shading``, and ``output`` is the read-back of the image (its bytes recorded). The
 bits and images are those of the host path (Embree keeps it).
 
+Seed 000 shades point lights only (§3.1). Emissive triangles show their own radiance where seen but light
+nothing: a scene with them says so (:meth:`VisibilityBitmap.omissions`, a warning and the summary's ``omitted``),
+and a scene lit by them alone (cornell) is refused.
+
 The zero-latency run is the paper's standalone mode (§4.5.1, Algorithm 3A): G-buffer, visibility and shading
 on one machine, with no network, memory-transfer, packing or codec passes. With a lossless transport and any
 codec here (all are lossless) the distributed image is bit-identical to it.
@@ -181,6 +185,20 @@ class VisibilityBitmap(Method):
         self.reset()
 
     # ------------------------------------------------------------------------------------------ life cycle
+
+    def omissions(self, scene) -> list[str]:
+        # Seed 000 §3.1 shades point lights only: one bit per pixel and point light. Emissive surfaces still show
+        # their own radiance where seen (the G-buffer's emission) but light nothing, so a scene lit by them alone
+        # is refused and one lit by both says what is left out.
+        area = len(scene.emissive_faces())
+        if not scene.point_lights:
+            raise UserError(f"visibility_bitmap: scene '{scene.name}' has no point lights"
+                            + (f" (only area lights: {area} emissive triangles)" if area else "")
+                            + "; seed 000's bitmap has one bit per point light (§3.1) and would render no light")
+        if area:
+            return [f"its {area} emissive triangles light nothing: seed 000 shades point lights only (§3.1), so "
+                    f"area lights show only their own emission"]
+        return []
 
     def prepare(self, scene, tracer) -> dict:
         light_count = len(scene.lights_at(scene.camera.frame_time_s(0)))

@@ -53,6 +53,13 @@ class Method:
         """
         return None
 
+    def omissions(self, scene) -> list[str]:
+        """What of ``scene`` this method does not render, one sentence each (a light kind its model has no term for,
+        say): the runner prints each as a warning and stores them as the run summary's ``omitted``, so that nothing
+        of a scene is dropped silently. A method raises :class:`~suite.errors.UserError` instead where it would
+        render nothing of the scene's light. The default: nothing omitted."""
+        return []
+
     def restore(self, prepared) -> None:
         """Takes the output of :meth:`prepare` (fresh or from the cache)."""
         self.prepared = prepared

@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -563,6 +564,11 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     cls = spec.load()
     scene = load_scene(cfg["scene"])
     tracer = make_tracer(cfg["backend"], scene)
+    # What of the scene the method does not render: said now and stored with the run (or a UserError where the
+    # method would render none of the scene's light).
+    omitted = [str(x) for x in cls(cfg["params"]).omissions(scene)]
+    for what in omitted:
+        print(f"splitbench: warning: {cfg['method']} on {cfg['scene']}: {what}", file=sys.stderr)
     n_clients = int(cfg.get("clients", 1))
     prepared, prepare_ms, prepare_reused, prepare_key = prepared_data(cls, cfg, scene, tracer, Path(results_root),
                                                                        env)
@@ -646,7 +652,7 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
         "lost_bytes": sum(e.lost_bytes for e in msgs), "incomplete_messages": sum(not e.complete for e in msgs),
         "reordered_sends": timeline.reordered_sends, "updates": len(main.update_rows),
         "rays": int(frames["rays"].sum()), "quality_frames": q_frames, "quality_clients": q_clients,
-        "saved_frames": keep_frames, "zero_latency_run": zl is not None,
+        "saved_frames": keep_frames, "zero_latency_run": zl is not None, "omitted": omitted,
         "stats": results.summarize_frames(frames, SUMMARY_COLUMNS),
         # Host wall time of this run by phase (set-up incl. prepare, simulation, the zero-latency run, references
         # and metrics): what a sweep's budget is made of; measured, so it differs between reruns.

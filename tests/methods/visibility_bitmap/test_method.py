@@ -462,3 +462,28 @@ def test18_device_path_ambient_and_repairs_match_the_host_path(backend):
     info = contexts[0][2]
     assert info["status"] == "repaired" and 0 < info["rows_repaired"] < RES[1]
     assert np.isfinite(images[0]).all() and images[0].mean() > 0
+
+
+# --- what of a scene the method leaves out (seed 000 §3.1: point lights only) ------------------------------------
+
+def test19_a_scene_lit_only_by_area_lights_is_refused_by_name_with_no_result(tmp_path, capsys):
+    from suite.harness import cli
+
+    code = cli.main(["run", "visibility_bitmap", "--scene", "cornell", "--resolution", "32x18", "--frames", "1",
+                     "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert "cornell" in err and "no point lights" in err and "area lights" in err
+    assert not any(tmp_path.rglob("summary.json"))
+
+
+def test20_emissive_triangles_beside_point_lights_are_warned_and_stored_as_omitted(tmp_path, capsys):
+    from suite.core.scene import load
+    from suite.harness import runner
+
+    assert VisibilityBitmap({}).omissions(load("living_room")) == []  # point lights only: nothing left out
+    cfg = runner.make_config("visibility_bitmap", scene="atrium", resolution="32x18", frames=1, reference_spp=0)
+    summary = runner.execute(cfg, tmp_path)["summary"]
+    area = len(load("atrium").emissive_faces())
+    assert area > 0 and summary["omitted"] and f"{area} emissive triangles" in summary["omitted"][0]
+    assert f"warning: visibility_bitmap on atrium: its {area} emissive" in capsys.readouterr().err
