@@ -175,6 +175,8 @@ def compare_results(tmp_path_factory):
         # no interruption here: no sleep
         folder = conftest.copy_fake_method(root, name, lambda cfg: cfg.replace("work_ms = 60.0", "work_ms = 0.0"))
         (folder / "report.py").write_text(CLAIMS_REPORT.format(name=name))
+    with open(root / "synthetic_sync" / "method.py", "a") as f:  # a method that leaves part of the scene out
+        f.write("\nSyntheticSync.omissions = lambda self, scene: ['its fill light is left out']\n")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("SPLITBENCH_METHOD_PATHS", str(root))
         conftest.install_fake_core(mp.setattr)
@@ -200,6 +202,7 @@ def test_the_report_builds_from_stored_results_only_and_opens_with_the_answer(co
     for net in ("bw=8mbps,delay=5ms", "bw=2mbps,delay=20ms"):
         assert answer.count(f"<td>{net}</td>") >= 2
     assert "missing_scene" in answer  # the skipped scene is recorded where the answer is
+    assert "synthetic_sync on toy: its fill light is left out" in answer  # and what a method does not render
     assert "Pareto fronts" in headings[1] and list((tmp_path / "again" / "compare").glob("pareto_*.png"))
     assert "noise floors" in headings[2]
     runs = pd.read_csv(tmp_path / "again" / "compare" / "compare_runs.csv")
