@@ -43,7 +43,7 @@ import numpy as np
 from suite.core import video
 from suite.core.scene.model import CameraPose
 from suite.errors import UserError
-from suite.harness.method import Method
+from suite.harness.method import Method, non_diffuse_materials
 
 from methods.layered_pvs import client as cl
 from methods.layered_pvs import codecs, packing, server, wire
@@ -132,6 +132,12 @@ class LayeredPVS(Method):
         if int(p.get("tile", 8)) not in (8, 16, 32):
             raise UserError(f"tile must be 8, 16 or 32 (JPEG blocks are 8x8), got {p.get('tile')}")
         self.reset()
+
+    def omissions(self, scene) -> list[str]:
+        odd, names = non_diffuse_materials(scene)
+        # server.path_trace: every fragment and path vertex is Lambertian with its albedo
+        return [f"its {odd} non-diffuse materials ({names}) are path-traced as Lambertian with their albedo"] \
+            if odd else []
 
     def prepare(self, scene, tracer):
         """Offline: which scene vertices share a position (the PVS patch references each position once)."""

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from suite.harness.method import Method
+from suite.harness.method import Method, non_diffuse_materials
 
 from . import wire
 from .grid import AmbientGrid, GridGeometry, MultiRefGrid, frustum_cells, frustum_planes, idw
@@ -156,6 +156,12 @@ class Rail(Method):
     }
 
     # ------------------------------------------------------------------------------------------- offline data
+
+    def omissions(self, scene) -> list[str]:
+        odd, names = non_diffuse_materials(scene)
+        # seed 004 §3.1: the point set samples diffuse indirect lighting; its irradiance lights every surface
+        return [f"its {odd} non-diffuse materials ({names}) take their indirect light as Lambertian surfaces: "
+                f"RAIL's irradiance records are diffuse (seed 004 §3.1)"] if odd else []
 
     def prepare(self, scene, tracer):
         p = self.params

@@ -81,7 +81,7 @@ import numpy as np
 
 from suite.core.scene.model import CameraPose
 from suite.errors import UserError
-from suite.harness.method import Method
+from suite.harness.method import Method, non_diffuse_materials
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs, transfer, wire
@@ -195,10 +195,15 @@ class VisibilityBitmap(Method):
             raise UserError(f"visibility_bitmap: scene '{scene.name}' has no point lights"
                             + (f" (only area lights: {area} emissive triangles)" if area else "")
                             + "; seed 000's bitmap has one bit per point light (§3.1) and would render no light")
+        out = []
         if area:
-            return [f"its {area} emissive triangles light nothing: seed 000 shades point lights only (§3.1), so "
-                    f"area lights show only their own emission"]
-        return []
+            out.append(f"its {area} emissive triangles light nothing: seed 000 shades point lights only (§3.1), so "
+                       f"area lights show only their own emission")
+        odd, names = non_diffuse_materials(scene)
+        if odd:  # Algorithm 3A's Lambertian(n, m, wPos, l): no reflections, refractions or highlights
+            out.append(f"its {odd} non-diffuse materials ({names}) are shaded as Lambertian with their albedo, as "
+                       f"seed 000 shades every surface (Algorithm 3A)")
+        return out
 
     def prepare(self, scene, tracer) -> dict:
         light_count = len(scene.lights_at(scene.camera.frame_time_s(0)))

@@ -89,6 +89,16 @@ class Method:
         return f"{self.name}({args})"
 
 
+def non_diffuse_materials(scene, listed: int = 4) -> tuple[int, str]:
+    """How many of the materials ``scene``'s faces use have a BSDF other than diffuse, and them named with their
+    kinds (the first ``listed``), for a method's :meth:`Method.omissions` where its model shades every surface as
+    Lambertian: ``(2, "'frame' (mirror), 'pane' (glass)")``; ``(0, "")`` for an all-diffuse scene."""
+    used = sorted(set(np.unique(scene.face_material).tolist()))
+    odd = [scene.materials[m] for m in used if scene.materials[m].shading_kind != "diffuse"]
+    names = ", ".join(f"'{m.name}' ({m.shading_kind})" for m in odd[:listed])
+    return len(odd), names + (", …" if len(odd) > listed else "")
+
+
 @dataclass
 class StageRecord:
     """Counters of one stage; the method may set ``pixels`` and ``bytes`` and add work inside the block."""

@@ -56,3 +56,22 @@ def test05_local_direct_renders_deterministic_frames_end_to_end(tmp_path):
     assert list(fa["rays"]) == list(fb["rays"]) and (fa["bytes_down"] == 0).all()
     assert fa["critical_path"][0] == "gbuffer>shade"
     assert results.is_complete(a["run_dir"])
+
+
+# What each method leaves out of a scene (Method.omissions): the Lambertian-only models say so of gallery's mirror,
+# glass and rough materials, the models with BSDFs do not, and an all-diffuse scene gets no such sentence.
+LAMBERTIAN_ONLY = {"visibility_bitmap", "layered_pvs", "rail"}
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test06_lambertian_only_methods_name_the_non_diffuse_materials_they_flatten(name):
+    from suite.core.scene import load
+    from suite.harness.method import non_diffuse_materials
+
+    gallery, living_room = load("gallery"), load("living_room")
+    count, names = non_diffuse_materials(gallery)
+    assert count == 4 and "(mirror)" in names and "(glass)" in names and non_diffuse_materials(living_room) == (0, "")
+    method = registry.get(name).load()(registry.get(name).params())
+    said = " ".join(method.omissions(gallery))
+    assert (f"{count} non-diffuse materials ({names})" in said) == (name in LAMBERTIAN_ONLY)
+    assert "non-diffuse" not in " ".join(method.omissions(living_room))
