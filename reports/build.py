@@ -56,7 +56,7 @@ def load_all(results_root) -> tuple[pd.DataFrame, pd.DataFrame, list[dict]]:
                "protocol": s["protocol"], "frames": s["frames"], "backend": cfg["config"]["backend"],
                "seed": cfg["seed"], "fps": s["fps"], "bandwidth_mbps": s["bandwidth_mbps"],
                "bandwidth_down_mbps": s["bandwidth_down_mbps"], "bandwidth_up_mbps": s["bandwidth_up_mbps"],
-               "prepare_ms": s["prepare_ms"], "rays": s["rays"]}
+               "prepare_ms": s["prepare_ms"], "rays": s["rays"], "omitted": " ".join(s.get("omitted") or [])}
         for col in ("frame_ms", "latency_ms", "staleness_ms", "ssim", "dssim", "psnr_db", "flip", "zl_dssim"):
             stats = s["stats"].get(col, {})
             row[f"{col}_mean"] = stats.get("mean", np.nan)
@@ -360,8 +360,13 @@ def run_matrix_section(runs: pd.DataFrame) -> str:
             "bandwidth_mbps", "dssim_mean", "zl_dssim_mean", "rays", "backend"]
     parts = []
     for method, df in runs.groupby("method"):
-        parts.append(f"<details><summary>{esc(method)}: {len(df)} runs</summary>"
-                     + table_html(df[[c for c in cols if c in df]]) + "</details>")
+        # what the method does not render of a scene (summary `omitted`), stated once per scene beside its runs
+        left = sorted({(sc, w) for sc, w in zip(df["scene"], df.get("omitted", [""] * len(df))) if w})
+        note = ("<p>Left out (the errors include it): " + "; ".join(f"{esc(sc)}: {esc(w)}" for sc, w in left)
+                + ".</p>") if left else ""
+        parts.append(f"<details><summary>{esc(method)}: {len(df)} runs"
+                     + (f", leaving part of {len(left)} scene(s) out" if left else "") + "</summary>"
+                     + note + table_html(df[[c for c in cols if c in df]]) + "</details>")
     return ("<h2 id='runs'>Run matrix</h2><p>Every complete run, per method (click to open). "
             "<a href='runs.csv'>runs.csv</a> · <a href='frames.csv'>frames.csv</a></p>" + "".join(parts))
 

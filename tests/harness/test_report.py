@@ -153,3 +153,18 @@ def test08_the_report_shows_the_core_benchmarks_per_backend(tmp_path):
     for text in ("G-buffer / raw intersect (goal &lt;= 2)", "visibility raw / pass (goal &gt;= 0.9)",
                  "occluded suite/raw (goal &gt;= 0.9)", "cornell", "device (llvm_ad_rgb)"):
         assert text in html, text
+
+
+def test09_the_run_matrix_states_what_a_method_left_out_of_a_scene(fake_config, tmp_path, monkeypatch):
+    from suite.harness import registry
+
+    cls = registry.get("synthetic_sync").load()
+    monkeypatch.setattr(cls, "omissions", lambda self, scene: ["its fill light is left out"], raising=False)
+    executor.sweep([fake_config(), fake_config("synthetic_async")], tmp_path / "res")
+    page = report.build(tmp_path / "res", tmp_path / "rep").read_text()
+    matrix = page[page.index("Run matrix"):]
+    assert "synthetic_sync: 1 runs, leaving part of 1 scene(s) out" in matrix
+    assert "Left out (the errors include it): toy: its fill light is left out." in matrix
+    assert "synthetic_async: 1 runs</summary>" in matrix  # a method that leaves nothing out says nothing
+    runs = pd.read_csv(tmp_path / "rep" / "runs.csv").set_index("method")
+    assert runs.loc["synthetic_sync", "omitted"] == "its fill light is left out"
