@@ -28,9 +28,10 @@ the packed bitmap is read back at the end of ``visibility`` (the encoder needs i
 the received bitmap as it is in ``shading``, and ``output`` is the read-back of the image (its bytes recorded). The
 bits and images are those of the host path (Embree keeps it).
 
-Seed 000 shades point lights only (§3.1). Emissive triangles show their own radiance where seen but light
-nothing: a scene with them says so (:meth:`VisibilityBitmap.omissions`, a warning and the summary's ``omitted``),
-and a scene lit by them alone (cornell) is refused.
+Seed 000 shades point lights on Lambertian surfaces only (§3.1, Algorithm 3A). Emissive triangles show their own
+radiance where seen but light nothing, and other materials are shaded as Lambertian with their albedo: a scene with
+either says so (:meth:`VisibilityBitmap.omissions`: a warning and the summary's ``omitted``), and a scene lit by
+emissive triangles alone (cornell) is refused.
 
 The zero-latency run is the paper's standalone mode (§4.5.1, Algorithm 3A): G-buffer, visibility and shading
 on one machine, with no network, memory-transfer, packing or codec passes. With a lossless transport and any

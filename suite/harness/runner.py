@@ -563,12 +563,12 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     spec = registry.get(cfg["method"])
     cls = spec.load()
     scene = load_scene(cfg["scene"])
-    tracer = make_tracer(cfg["backend"], scene)
-    # What of the scene the method does not render: said now and stored with the run (or a UserError where the
-    # method would render none of the scene's light).
+    # What of the scene the method does not render: said now and stored with the run (or a UserError, before any
+    # work, where the method would render none of the scene's light).
     omitted = [str(x) for x in cls(cfg["params"]).omissions(scene)]
     for what in omitted:
         print(f"splitbench: warning: {cfg['method']} on {cfg['scene']}: {what}", file=sys.stderr)
+    tracer = make_tracer(cfg["backend"], scene)
     n_clients = int(cfg.get("clients", 1))
     prepared, prepare_ms, prepare_reused, prepare_key = prepared_data(cls, cfg, scene, tracer, Path(results_root),
                                                                        env)
