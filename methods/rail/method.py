@@ -159,9 +159,11 @@ class Rail(Method):
 
     def omissions(self, scene) -> list[str]:
         odd, names = non_diffuse_materials(scene)
-        # seed 004 §3.1: the point set samples diffuse indirect lighting; its irradiance lights every surface
-        return [f"its {odd} non-diffuse materials ({names}) take their indirect light as Lambertian surfaces: "
-                f"RAIL's irradiance records are diffuse (seed 004 §3.1)"] if odd else []
+        # the client's direct term is suite.core.shading's Lambertian direct lighting, and seed 004 §3.1's point set
+        # samples diffuse indirect lighting, whose irradiance lights every surface
+        return [f"its {odd} non-diffuse materials ({names}) are shaded as Lambertian with their albedo: the client's "
+                f"direct lighting is Lambertian and RAIL's irradiance records are diffuse (seed 004 §3.1)"] \
+            if odd else []
 
     def prepare(self, scene, tracer):
         p = self.params
