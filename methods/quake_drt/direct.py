@@ -260,69 +260,6 @@ def _select(i0, rows, row_off, row_lights, row_cdf, k, mode, seeds, chosen, s_po
     return count, i, cand, sel
 
 
-@numba.njit(inline="always")
-def _sample_ray(i, light, dimbase, weight, ox, oy, oz, ng, ns, lambert, seeds, kind, lpos, larea, tri_off, tri_p0,
-                tri_e1, tri_e2, tri_n, tri_cdf, rep_tri, soft, min_d2):
-    """The shadow ray of point ``i``'s sample of ``light`` from the origin ``(ox, oy, oz)``: ``(made, g, dx, dy,
-    dz, dist)``, with ``made`` false when the light is below the point's geometric horizon, behind a Lambertian
-    point's shading normal or behind its one-sided emitter; ``g`` is the sample's weight times its geometry term
-    (and the Lambertian 1/pi), before the light's colour. One body for :func:`_rays` and :func:`_generate`, so that
-    the two give the same bits."""
-    if kind[light] == 0:
-        yx, yy, yz = lpos[light, 0], lpos[light, 1], lpos[light, 2]
-        nyx, nyy, nyz = 0.0, 0.0, 0.0
-    else:
-        a = tri_off[light]
-        if soft:
-            t = a + _find(tri_cdf, a, tri_off[light + 1] - a, uniform_nb(seeds[i], dimbase + 1))
-            su = np.sqrt(uniform_nb(seeds[i], dimbase + 2))
-            b1 = 1.0 - su
-            b2 = uniform_nb(seeds[i], dimbase + 3) * su
-        else:
-            t = rep_tri[light]
-            b1 = 1.0 / 3.0
-            b2 = 1.0 / 3.0
-        yx = tri_p0[t, 0] + b1 * tri_e1[t, 0] + b2 * tri_e2[t, 0]
-        yy = tri_p0[t, 1] + b1 * tri_e1[t, 1] + b2 * tri_e2[t, 1]
-        yz = tri_p0[t, 2] + b1 * tri_e1[t, 2] + b2 * tri_e2[t, 2]
-        nyx, nyy, nyz = tri_n[t, 0], tri_n[t, 1], tri_n[t, 2]
-    tx, ty, tz = yx - ox, yy - oy, yz - oz
-    d2 = tx * tx + ty * ty + tz * tz
-    dist = np.sqrt(d2)
-    inv = 1.0 / max(dist, 1e-30)
-    dx, dy, dz = tx * inv, ty * inv, tz * inv
-    if dx * ng[i, 0] + dy * ng[i, 1] + dz * ng[i, 2] <= 0.0:
-        return False, 0.0, dx, dy, dz, dist  # below the geometric horizon: the surface shadows itself
-    cos_x = dx * ns[i, 0] + dy * ns[i, 1] + dz * ns[i, 2]
-    if lambert[i] and cos_x <= 0.0:
-        return False, 0.0, dx, dy, dz, dist
-    g = weight / max(d2, min_d2)
-    if kind[light] != 0:
-        cos_y = -(dx * nyx + dy * nyy + dz * nyz)
-        if cos_y <= 0.0:
-            return False, 0.0, dx, dy, dz, dist  # behind the one-sided emitter
-        g *= cos_y * larea[light]
-    if lambert[i]:
-        g *= cos_x * 0.3183098861837907
-    return True, g, dx, dy, dz, dist
-
-
-@numba.njit(inline="always")
-def _write_ray(count, i, light, g, ox, oy, oz, dx, dy, dz, dist, lrgb, shift, tmax_scale, o_out, d_out, len_out,
-               w_out, ray_point):
-    """Row ``count`` of the ray outputs: the origin in the tracer's frame, the direction, the float32 length short
-    of the light, the sample's RGB weight and its point."""
-    o_out[count, 0] = ox - shift[0]
-    o_out[count, 1] = oy - shift[1]
-    o_out[count, 2] = oz - shift[2]
-    d_out[count, 0], d_out[count, 1], d_out[count, 2] = dx, dy, dz
-    len_out[count] = max(np.float32(dist * tmax_scale), np.float32(0.0))
-    w_out[count, 0] = g * lrgb[light, 0]
-    w_out[count, 1] = g * lrgb[light, 1]
-    w_out[count, 2] = g * lrgb[light, 2]
-    ray_point[count] = i
-
-
 @numba.njit(cache=True, nogil=True)
 def _rays(n_samples, s_point, s_light, s_weight, s_dim, origin, ng, ns, lambert, seeds, kind, lpos, lrgb, larea,
           tri_off, tri_p0, tri_e1, tri_e2, tri_n, tri_cdf, rep_tri, soft, shift, min_d2, tmax_scale, o_out, d_out,
@@ -333,14 +270,53 @@ def _rays(n_samples, s_point, s_light, s_weight, s_dim, origin, ng, ns, lambert,
     for q in range(n_samples):
         i = s_point[q]
         light = s_light[q]
+        dimbase = s_dim[q]
         ox, oy, oz = origin[i, 0], origin[i, 1], origin[i, 2]
-        made, g, dx, dy, dz, dist = _sample_ray(i, light, s_dim[q], s_weight[q], ox, oy, oz, ng, ns, lambert, seeds,
-                                                kind, lpos, larea, tri_off, tri_p0, tri_e1, tri_e2, tri_n, tri_cdf,
-                                                rep_tri, soft, min_d2)
-        if not made:
+        if kind[light] == 0:
+            yx, yy, yz = lpos[light, 0], lpos[light, 1], lpos[light, 2]
+            nyx, nyy, nyz = 0.0, 0.0, 0.0
+        else:
+            a = tri_off[light]
+            if soft:
+                t = a + _find(tri_cdf, a, tri_off[light + 1] - a, uniform_nb(seeds[i], dimbase + 1))
+                su = np.sqrt(uniform_nb(seeds[i], dimbase + 2))
+                b1 = 1.0 - su
+                b2 = uniform_nb(seeds[i], dimbase + 3) * su
+            else:
+                t = rep_tri[light]
+                b1 = 1.0 / 3.0
+                b2 = 1.0 / 3.0
+            yx = tri_p0[t, 0] + b1 * tri_e1[t, 0] + b2 * tri_e2[t, 0]
+            yy = tri_p0[t, 1] + b1 * tri_e1[t, 1] + b2 * tri_e2[t, 1]
+            yz = tri_p0[t, 2] + b1 * tri_e1[t, 2] + b2 * tri_e2[t, 2]
+            nyx, nyy, nyz = tri_n[t, 0], tri_n[t, 1], tri_n[t, 2]
+        tx, ty, tz = yx - ox, yy - oy, yz - oz
+        d2 = tx * tx + ty * ty + tz * tz
+        dist = np.sqrt(d2)
+        inv = 1.0 / max(dist, 1e-30)
+        dx, dy, dz = tx * inv, ty * inv, tz * inv
+        if dx * ng[i, 0] + dy * ng[i, 1] + dz * ng[i, 2] <= 0.0:
+            continue  # below the geometric horizon: the surface shadows itself
+        cos_x = dx * ns[i, 0] + dy * ns[i, 1] + dz * ns[i, 2]
+        if lambert[i] and cos_x <= 0.0:
             continue
-        _write_ray(count, i, light, g, ox, oy, oz, dx, dy, dz, dist, lrgb, shift, tmax_scale, o_out, d_out, len_out,
-                   w_out, ray_point)
+        g = s_weight[q] / max(d2, min_d2)
+        if kind[light] != 0:
+            cos_y = -(dx * nyx + dy * nyy + dz * nyz)
+            if cos_y <= 0.0:
+                continue  # behind the one-sided emitter
+            g *= cos_y * larea[light]
+        if lambert[i]:
+            g *= cos_x * 0.3183098861837907
+        o_out[count, 0] = ox - shift[0]
+        o_out[count, 1] = oy - shift[1]
+        o_out[count, 2] = oz - shift[2]
+        d_out[count, 0], d_out[count, 1], d_out[count, 2] = dx, dy, dz
+        len_out[count] = max(np.float32(dist * tmax_scale), np.float32(0.0))
+        w_out[count, 0] = g * lrgb[light, 0]
+        w_out[count, 1] = g * lrgb[light, 1]
+        w_out[count, 2] = g * lrgb[light, 2]
+        ray_point[count] = i
         ray_light[count] = light
         count += 1
     return count
@@ -380,14 +356,54 @@ def _generate(i0, cap, rows, row_off, row_lights, row_cdf, k, mode, chosen, l_li
         step = max(OFFSET_ULPS * np.float64(np.spacing(mag)), FLOAT_SCALE)
         ox, oy, oz = p[i, 0] + step * ng[i, 0], p[i, 1] + step * ng[i, 1], p[i, 2] + step * ng[i, 2]
         for q in range(m):
+            # The body of _rays (kept verbatim, so that the two give the same bits).
             light = l_light[q]
-            made, g, dx, dy, dz, dist = _sample_ray(i, light, l_dim[q], l_weight[q], ox, oy, oz, ng, ns, lambert,
-                                                    seeds, kind, lpos, larea, tri_off, tri_p0, tri_e1, tri_e2, tri_n,
-                                                    tri_cdf, rep_tri, soft, min_d2)
-            if not made:
+            dimbase = l_dim[q]
+            if kind[light] == 0:
+                yx, yy, yz = lpos[light, 0], lpos[light, 1], lpos[light, 2]
+                nyx, nyy, nyz = 0.0, 0.0, 0.0
+            else:
+                a = tri_off[light]
+                if soft:
+                    t = a + _find(tri_cdf, a, tri_off[light + 1] - a, uniform_nb(seeds[i], dimbase + 1))
+                    su = np.sqrt(uniform_nb(seeds[i], dimbase + 2))
+                    b1 = 1.0 - su
+                    b2 = uniform_nb(seeds[i], dimbase + 3) * su
+                else:
+                    t = rep_tri[light]
+                    b1 = 1.0 / 3.0
+                    b2 = 1.0 / 3.0
+                yx = tri_p0[t, 0] + b1 * tri_e1[t, 0] + b2 * tri_e2[t, 0]
+                yy = tri_p0[t, 1] + b1 * tri_e1[t, 1] + b2 * tri_e2[t, 1]
+                yz = tri_p0[t, 2] + b1 * tri_e1[t, 2] + b2 * tri_e2[t, 2]
+                nyx, nyy, nyz = tri_n[t, 0], tri_n[t, 1], tri_n[t, 2]
+            tx, ty, tz = yx - ox, yy - oy, yz - oz
+            d2 = tx * tx + ty * ty + tz * tz
+            dist = np.sqrt(d2)
+            inv = 1.0 / max(dist, 1e-30)
+            dx, dy, dz = tx * inv, ty * inv, tz * inv
+            if dx * ng[i, 0] + dy * ng[i, 1] + dz * ng[i, 2] <= 0.0:
+                continue  # below the geometric horizon: the surface shadows itself
+            cos_x = dx * ns[i, 0] + dy * ns[i, 1] + dz * ns[i, 2]
+            if lambert[i] and cos_x <= 0.0:
                 continue
-            _write_ray(count, i, light, g, ox, oy, oz, dx, dy, dz, dist, lrgb, shift, tmax_scale, o_out, d_out,
-                       len_out, w_out, ray_point)
+            g = l_weight[q] / max(d2, min_d2)
+            if kind[light] != 0:
+                cos_y = -(dx * nyx + dy * nyy + dz * nyz)
+                if cos_y <= 0.0:
+                    continue  # behind the one-sided emitter
+                g *= cos_y * larea[light]
+            if lambert[i]:
+                g *= cos_x * 0.3183098861837907
+            o_out[count, 0] = ox - shift[0]
+            o_out[count, 1] = oy - shift[1]
+            o_out[count, 2] = oz - shift[2]
+            d_out[count, 0], d_out[count, 1], d_out[count, 2] = dx, dy, dz
+            len_out[count] = max(np.float32(dist * tmax_scale), np.float32(0.0))
+            w_out[count, 0] = g * lrgb[light, 0]
+            w_out[count, 1] = g * lrgb[light, 1]
+            w_out[count, 2] = g * lrgb[light, 2]
+            ray_point[count] = i
             count += 1
         i += 1
     return count, i, cand, sel
