@@ -592,7 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("run", help="run one method on one scene and network")
     s.add_argument("method")
-    s.add_argument("--scene", default="cornell", help="embedded name, oa:<map>, a scene on the search path, or a path to a Mitsuba XML / OBJ / BSP / PK3 file")
+    s.add_argument("--scene", default=None, help="embedded name, oa:<map>, a scene on the search path, or a path to a Mitsuba XML / OBJ / BSP / PK3 file (default: the method's [method] scene, else cornell)")
     s.add_argument("--backend", default="embree")
     s.add_argument("--resolution", default="160x90", help="WxH")
     s.add_argument("--frames", default=3, type=_int_arg("--frames"))

@@ -39,6 +39,14 @@ class MethodSpec:
         return str(self.config.get("method", {}).get("description", ""))
 
     @property
+    def default_scene(self) -> str | None:
+        """``[method] scene``: the scene a run takes when none is given (one the method renders), or None."""
+        scene = self.config.get("method", {}).get("scene")
+        if scene is not None and not (isinstance(scene, str) and scene):
+            raise UserError(f"method '{self.name}': [method] scene must be a scene name, got {scene!r}")
+        return scene
+
+    @property
     def defaults(self) -> dict:
         return dict(self.config.get("defaults", {}))
 

@@ -173,6 +173,8 @@ def make_config(method: str, *, scene=None, backend=None, resolution=None, frame
     """Validates user input into a full run config (a plain dict, JSON-able, the run's identity)."""
     spec = registry.get(method)
     cfg = dict(RUN_DEFAULTS)
+    if scene is None and spec.default_scene is not None:  # the method's own default: a scene it renders
+        scene = spec.default_scene
     given = {"scene": scene, "backend": backend, "resolution": resolution, "frames": frames, "net": net,
              "protocol": protocol, "variant": variant, "seed": seed, **options}
     unknown = set(given) - set(RUN_DEFAULTS)

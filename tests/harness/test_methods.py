@@ -76,3 +76,22 @@ def test06_lambertian_only_methods_name_the_non_diffuse_materials_they_flatten(n
     said = " ".join(method.omissions(gallery))
     assert (f"{count} non-diffuse materials ({names})" in said) == (name in LAMBERTIAN_ONLY)
     assert "non-diffuse" not in " ".join(method.omissions(living_room))
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test07_a_run_without_a_scene_takes_one_the_method_renders(name):
+    from suite.core.scene import load
+    from suite.harness import runner
+
+    spec = registry.get(name)
+    cfg = runner.make_config(name)  # as `splitbench run NAME` with no --scene
+    assert cfg["scene"] == (spec.default_scene or runner.RUN_DEFAULTS["scene"])
+    spec.load()(cfg["params"]).omissions(load(cfg["scene"]))  # no UserError: the method renders it
+
+
+def test08_a_malformed_default_scene_is_a_user_error(tmp_path):
+    from suite.errors import UserError
+
+    spec = registry.MethodSpec("broken", tmp_path, {"method": {"scene": 3}})
+    with pytest.raises(UserError, match=r"\[method\] scene must be a scene name"):
+        _ = spec.default_scene
