@@ -43,7 +43,7 @@ import numpy as np
 from suite.core import video
 from suite.core.scene.model import CameraPose
 from suite.errors import UserError
-from suite.harness.method import Method, non_diffuse_materials
+from suite.harness.method import Method
 
 from methods.layered_pvs import client as cl
 from methods.layered_pvs import codecs, packing, server, wire
@@ -82,6 +82,8 @@ class LayeredPVS(Method):
     mode = "async"
     # Layers are path traced on the server (§4.4: next-event estimation, Russian roulette): multi-bounce transport.
     light_transport = "global"
+    # server.path_trace: every fragment and path vertex is Lambertian with its albedo
+    flattens_materials = "are path-traced as Lambertian with their albedo"
     update_outputs = {
         **{f"bytes_{p}": f"bytes of the '{p}' part of the update" for p in PARTS},
         "bytes_header": "bytes of the header and part table",
@@ -132,12 +134,6 @@ class LayeredPVS(Method):
         if int(p.get("tile", 8)) not in (8, 16, 32):
             raise UserError(f"tile must be 8, 16 or 32 (JPEG blocks are 8x8), got {p.get('tile')}")
         self.reset()
-
-    def omissions(self, scene) -> list[str]:
-        odd, names = non_diffuse_materials(scene)
-        # server.path_trace: every fragment and path vertex is Lambertian with its albedo
-        return [f"its {odd} non-diffuse materials ({names}) are path-traced as Lambertian with their albedo"] \
-            if odd else []
 
     def prepare(self, scene, tracer):
         """Offline: which scene vertices share a position (the PVS patch references each position once)."""

@@ -5,18 +5,15 @@ Every frame traces a G-buffer (one primary ray per pixel) and shades it with Lam
 lower bound on latency and the reference row for "what does splitting buy" in every report. Materials other than
 diffuse are shaded as Lambertian with their albedo, which a run says (:meth:`LocalDirect.omissions`).
 """
-from suite.harness.method import Method, non_diffuse_materials
+from suite.harness.method import Method
 
 
 class LocalDirect(Method):
     name = "local_direct"
     mode = "sync"
     uses_network = False  # nothing is sent, so the zero-latency run would repeat this one
-
-    def omissions(self, scene) -> list[str]:
-        odd, names = non_diffuse_materials(scene)
-        # suite.core.shading.direct_lighting: albedo / pi at every surface
-        return [f"its {odd} non-diffuse materials ({names}) are shaded as Lambertian with their albedo"] if odd else []
+    # suite.core.shading.direct_lighting: albedo / pi at every surface
+    flattens_materials = "are shaded as Lambertian with their albedo"
 
     def frame(self, ctx):
         from suite.core.gbuffer import render_gbuffer

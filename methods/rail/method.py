@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from suite.harness.method import Method, non_diffuse_materials
+from suite.harness.method import Method
 
 from . import wire
 from .grid import AmbientGrid, GridGeometry, MultiRefGrid, frustum_cells, frustum_planes, idw
@@ -123,6 +123,10 @@ class Rail(Method):
     mode = "async"
     # Direct light on the client plus diffuse indirect light from the irradiance cloud: multi-bounce transport.
     light_transport = "global"
+    # The client's direct term is suite.core.shading's Lambertian direct lighting, and seed 004 §3.1's point set
+    # samples diffuse indirect lighting, whose irradiance lights every surface.
+    flattens_materials = ("are shaded as Lambertian with their albedo: the client's direct lighting is Lambertian and "
+                          "RAIL's irradiance records are diffuse (seed 004 §3.1)")
     outputs = {
         "cache_ready": "the client holds G (the initial transfer arrived intact)",
         "fallback_pixels": "pixels shaded with the ambient function F_a·AO (eq. 2 was 0/0, or dynamic geometry)",
@@ -156,14 +160,6 @@ class Rail(Method):
     }
 
     # ------------------------------------------------------------------------------------------- offline data
-
-    def omissions(self, scene) -> list[str]:
-        odd, names = non_diffuse_materials(scene)
-        # the client's direct term is suite.core.shading's Lambertian direct lighting, and seed 004 §3.1's point set
-        # samples diffuse indirect lighting, whose irradiance lights every surface
-        return [f"its {odd} non-diffuse materials ({names}) are shaded as Lambertian with their albedo: the client's "
-                f"direct lighting is Lambertian and RAIL's irradiance records are diffuse (seed 004 §3.1)"] \
-            if odd else []
 
     def prepare(self, scene, tracer):
         p = self.params

@@ -82,7 +82,7 @@ import numpy as np
 
 from suite.core.scene.model import CameraPose
 from suite.errors import UserError
-from suite.harness.method import Method, non_diffuse_materials
+from suite.harness.method import Method
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs, transfer, wire
@@ -151,6 +151,8 @@ class VisibilityBitmap(Method):
     name = "visibility_bitmap"
     mode = "sync"
     uses_network = True
+    # Algorithm 3A's Lambertian(n, m, wPos, l): no reflections, refractions or highlights
+    flattens_materials = "are shaded as Lambertian with their albedo, as seed 000 shades every surface (Algorithm 3A)"
     outputs = {"raw_bytes": "bitmap bytes before the codec (W x H x bytes per pixel of the layout)",
                "wire_bytes": "framed, encoded bytes sent (0 in the standalone run)",
                "keyframe": "the frame was encoded without reference to earlier frames",
@@ -196,15 +198,9 @@ class VisibilityBitmap(Method):
             raise UserError(f"visibility_bitmap: scene '{scene.name}' has no point lights"
                             + (f" (only area lights: {area} emissive triangles)" if area else "")
                             + "; seed 000's bitmap has one bit per point light (§3.1) and would render no light")
-        out = []
-        if area:
-            out.append(f"its {area} emissive triangles light nothing: seed 000 shades point lights only (§3.1), so "
-                       f"area lights show only their own emission")
-        odd, names = non_diffuse_materials(scene)
-        if odd:  # Algorithm 3A's Lambertian(n, m, wPos, l): no reflections, refractions or highlights
-            out.append(f"its {odd} non-diffuse materials ({names}) are shaded as Lambertian with their albedo, as "
-                       f"seed 000 shades every surface (Algorithm 3A)")
-        return out
+        lights = [f"its {area} emissive triangles light nothing: seed 000 shades point lights only (§3.1), so area "
+                  f"lights show only their own emission"] if area else []
+        return lights + super().omissions(scene)
 
     def prepare(self, scene, tracer) -> dict:
         light_count = len(scene.lights_at(scene.camera.frame_time_s(0)))

@@ -39,6 +39,10 @@ class Method:
     # (updates.parquet). Recording an undeclared name is an error.
     outputs: dict = {}
     update_outputs: dict = {}
+    # A method whose model shades every surface as Lambertian: the rest of the sentence :meth:`omissions` says of a
+    # scene's non-diffuse materials ("are shaded as Lambertian with their albedo", with the model's reason). Empty:
+    # the method follows the materials' BSDFs.
+    flattens_materials: str = ""
 
     def __init__(self, params: dict):
         self.params = dict(params)
@@ -57,8 +61,12 @@ class Method:
         """What of ``scene`` this method does not render, one sentence each (a light kind its model has no term for,
         say): the runner prints each as a warning and stores them as the run summary's ``omitted``, so that nothing
         of a scene is dropped silently. A method raises :class:`~suite.errors.UserError` instead where it would
-        render nothing of the scene's light. The default: nothing omitted."""
-        return []
+        render nothing of the scene's light. The default: the scene's non-diffuse materials where the method
+        declares :attr:`flattens_materials`, else nothing."""
+        if not self.flattens_materials:
+            return []
+        odd, names = non_diffuse_materials(scene)
+        return [f"its {odd} non-diffuse materials ({names}) {self.flattens_materials}"] if odd else []
 
     def restore(self, prepared) -> None:
         """Takes the output of :meth:`prepare` (fresh or from the cache)."""
@@ -92,7 +100,7 @@ class Method:
 def non_diffuse_materials(scene, listed: int = 4) -> tuple[int, str]:
     """How many of the materials ``scene``'s faces use have a BSDF other than diffuse, and them named with their
     kinds (the first ``listed``), for a method's :meth:`Method.omissions` where its model shades every surface as
-    Lambertian: ``(2, "'frame' (mirror), 'pane' (glass)")``; ``(0, "")`` for an all-diffuse scene."""
+    Lambertian (:attr:`Method.flattens_materials`): ``(2, "'frame' (mirror), 'pane' (glass)")``; ``(0, "")`` for an all-diffuse scene."""
     used = sorted(set(np.unique(scene.face_material).tolist()))
     odd = [scene.materials[m] for m in used if scene.materials[m].shading_kind != "diffuse"]
     names = ", ".join(f"'{m.name}' ({m.shading_kind})" for m in odd[:listed])

@@ -567,7 +567,8 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     scene = load_scene(cfg["scene"])
     # What of the scene the method does not render: said now and stored with the run (or a UserError, before any
     # work, where the method would render none of the scene's light).
-    omitted = [str(x) for x in cls(cfg["params"]).omissions(scene)]
+    facts = cls(cfg["params"])  # an instance for what the method declares; the runs make their own
+    omitted = [str(x) for x in facts.omissions(scene)]
     for what in omitted:
         print(f"splitbench: warning: {cfg['method']} on {cfg['scene']}: {what}", file=sys.stderr)
     tracer = make_tracer(cfg["backend"], scene)
@@ -590,7 +591,6 @@ def execute(cfg: dict, results_root=DEFAULT_RESULTS_DIR, force: bool = False) ->
     # or a run on the ideal network would reproduce its own images, so it is skipped then.
     # A method may decide per parameters (a placement, a renderer): an instance attribute overrides the class's.
     wall_s["simulate"] = time.perf_counter() - start_s - sum(wall_s.values())
-    facts = cls(cfg["params"])
     needs_zl = facts.uses_network and (cfg["net"] != "ideal" or cfg.get("server_net"))
     zl = zero_latency_images(cls, scene, tracer, cfg, q_frames, q_clients, prepared, Path(results_root), env) \
         if needs_zl and q_frames and q_clients else None

@@ -4,11 +4,7 @@ import pytest
 from suite.harness import presets
 
 
-@pytest.fixture(autouse=True)
-def _every_scene_available(monkeypatch):
-    """The presets' grids as written, whatever scene data this machine has (presets skip the runs of scenes a
-    machine lacks, such as the OpenArena maps; that skipping is tested with the harness)."""
-    monkeypatch.setattr(presets, "scene_available", lambda name: True)
+pytestmark = pytest.mark.usefixtures("every_scene_available")  # tests/methods/conftest.py
 
 
 def _points(preset):
