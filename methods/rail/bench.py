@@ -11,8 +11,10 @@ running anything:
     generation and the suite's query cost on top of the backend.
 ``reconstruction``
     IDW through G (eq. 1-2, §3.3) against pixels (G-buffers of the camera path at 3 resolutions) and |Q|: ms per
-    megapixel and records visited per pixel (the cell's list length); grid memory: §3.3's bound against what G
-    holds (paper layout and this implementation).
+    megapixel and records visited per pixel (the cell's list length) of the host loop (what Embree runs), and
+    beside it the device path's (``device.py``) on every Dr.Jit backend that works here (``--device``): wall ms
+    per megapixel, the device time alone, and the speed-up over the host loop; grid memory: §3.3's bound against
+    what G holds (paper layout and this implementation).
 ``figures``
     Images for the report: one frame's direct light (the client's kernels), indirect light (final − direct: the
     IDW reconstruction times albedo/π) and final image, and seed 004's Fig. 10 as a sequence: frames of an
@@ -127,10 +129,62 @@ def _gbuffer_samples(scene, tracer, resolution):
     return g.position[g.valid], g.normal[g.valid], int(g.valid.sum())
 
 
-def bench_reconstruction(scene, tracer, targets, resolutions, repeats: int) -> dict:
+def device_backends() -> list[str]:
+    """The Dr.Jit backends that work on this machine (``mitsuba-llvm``; ``mitsuba-cuda`` with a GPU)."""
+    from suite.core.trace import backend_status
+
+    status = backend_status()
+    return [b for b in ("mitsuba-llvm", "mitsuba-cuda") if status.get(b, {}).get("available")]
+
+
+_DEVICE_TRACERS: dict = {}
+
+
+def _device_idw(scene, backend, grid_geometry, grid, pts, E, resolution, mu: float, repeats: int) -> dict:
+    """The device path's IDW (methods/rail/device.py) on ``backend``'s own G-buffer of the same view: wall ms of a
+    call (the per-frame upload of the records' irradiance included) and the device time alone (Dr.Jit's kernel
+    history)."""
+    from types import SimpleNamespace
+
+    from methods.rail import device as rdev
+    from suite.core.gbuffer import render_gbuffer_device
+    from suite.core.trace import make
+
+    key = (scene.name, backend)
+    if key not in _DEVICE_TRACERS:
+        _DEVICE_TRACERS[key] = make(backend, scene)
+    tracer = _DEVICE_TRACERS[key]
+    dev = tracer.device
+    t = scene.camera.frame_time_s(0) + 0.5 * scene.camera.duration_s
+    g = render_gbuffer_device(scene, tracer, t, tuple(resolution))
+    cg = SimpleNamespace(geometry=grid_geometry, grid=grid, position=pts.position, normal=pts.normal,
+                         range_m=pts.range_m)
+    dgrid = rdev.DeviceGrid(dev, cg)
+    nrm = dev.Vector3d(g.normal)
+    dev.eval(nrm)
+
+    def call():
+        out = rdev.idw(dgrid, dgrid.irradiance(E), g.position, nrm, g.valid, mu)
+        dev.sync()
+        return out
+
+    call()                                                                  # compile / warm
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        call()
+        times.append(time.perf_counter() - t0)
+    return {"ms": 1e3 * float(np.median(times)), "kernel_ms": dev.kernel_ms(call, repeats),
+            "pixels": int(dev.dr.count(g.valid)[0])}
+
+
+def bench_reconstruction(scene, tracer, targets, resolutions, repeats: int, devices=()) -> dict:
+    """Host IDW (``grid.idw``, numba, one thread) on ``tracer``'s G-buffers, and beside it the device path's IDW on
+    each backend of ``devices`` (its own G-buffer of the same view; the same records and irradiance)."""
     from methods.rail.grid import MultiRefGrid, idw
 
     rows, memory = [], []
+    mu = float(_params()["idw_mu"])
     for target in targets:
         prep, _ = _prepare(scene, tracer, target_points=int(target))
         pts = prep["points"]
@@ -139,20 +193,30 @@ def bench_reconstruction(scene, tracer, targets, resolutions, repeats: int) -> d
         memory.append({"target_points": int(target), **prep["grid_memory"]})
         for res in (resolutions if target == targets[len(targets) // 2] else [resolutions[len(resolutions) // 2]]):
             p, n, valid = _gbuffer_samples(scene, tracer, res)
-            idw(grid, pts.position, pts.normal, pts.range_m, E, p[:16], n[:16])     # compile / warm
+            idw(grid, pts.position, pts.normal, pts.range_m, E, p[:16], n[:16], mu)     # compile / warm
             times = []
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                _, wsum, visited = idw(grid, pts.position, pts.normal, pts.range_m, E, p, n)
+                _, wsum, visited = idw(grid, pts.position, pts.normal, pts.range_m, E, p, n, mu)
                 times.append(time.perf_counter() - t0)
             t = float(np.median(times))
-            rows.append({"target_points": int(target), "points": len(pts), "resolution": f"{res[0]}x{res[1]}",
-                         "pixels": valid, "idw_ms": 1e3 * t, "ms_per_megapixel": 1e3 * t / max(valid, 1) * 1e6,
-                         "records_visited_per_pixel": float(visited.mean()),
-                         "zero_weight_share": float((wsum <= 0).mean())})
-            print(f"  idw |Q|={len(pts):6d} {res[0]}x{res[1]}: {rows[-1]['ms_per_megapixel']:8.1f} ms/MP, "
-                  f"{rows[-1]['records_visited_per_pixel']:.1f} records/pixel")
-    return {"scene": scene.name, "rows": rows, "memory": memory}
+            row = {"target_points": int(target), "points": len(pts), "resolution": f"{res[0]}x{res[1]}",
+                   "pixels": valid, "idw_ms": 1e3 * t, "ms_per_megapixel": 1e3 * t / max(valid, 1) * 1e6,
+                   "records_visited_per_pixel": float(visited.mean()),
+                   "zero_weight_share": float((wsum <= 0).mean())}
+            line = (f"  idw |Q|={len(pts):6d} {res[0]}x{res[1]}: host {row['ms_per_megapixel']:8.1f} ms/MP, "
+                    f"{row['records_visited_per_pixel']:.1f} records/pixel")
+            for backend in devices:
+                d = _device_idw(scene, backend, prep["grid_geometry"], grid, pts, E, res, mu, repeats)
+                short = backend.replace("mitsuba-", "")
+                mp = max(d["pixels"], 1) / 1e6
+                row.update({f"{short}_idw_ms": d["ms"], f"{short}_ms_per_megapixel": d["ms"] / mp,
+                            f"{short}_kernel_ms_per_megapixel": d["kernel_ms"] / mp,
+                            f"{short}_speedup": row["ms_per_megapixel"] / (d["ms"] / mp)})
+                line += f", {short} {d['ms'] / mp:8.1f} ms/MP (device {d['kernel_ms'] / mp:.1f})"
+            rows.append(row)
+            print(line)
+    return {"scene": scene.name, "rows": rows, "memory": memory, "devices": list(devices)}
 
 
 def bench_serving(scene, tracer, clients, repeats: int) -> dict:
@@ -253,7 +317,8 @@ def run(args) -> dict:
         from suite.harness.runner import parse_resolution
 
         res = [tuple(parse_resolution(r)) for r in args.resolutions.split(",")]
-        out["reconstruction"] = {**bench_reconstruction(scene, tracer, targets, res, args.repeats),
+        devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
+        out["reconstruction"] = {**bench_reconstruction(scene, tracer, targets, res, args.repeats, devices),
                                  "backend": args.backend}
     if "serving" in args.parts:
         out["serving"] = {**bench_serving(scene, tracer, [int(c) for c in args.clients.split(",")], args.repeats),
@@ -274,6 +339,8 @@ def main(argv=None) -> int:
     ap.add_argument("--paths", default="16,32,64", help="light paths per pass (VPL sweep)")
     ap.add_argument("--resolutions", default="160x90,320x180,640x360")
     ap.add_argument("--clients", default="1,2,4,8,16,24,32")
+    ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the device IDW on beside the host "
+                    "loop (auto: every one that works here; '' for none)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--out", default="results")
     ap.add_argument("--no-store", action="store_true")

@@ -20,6 +20,9 @@ Client (one instance each):
   indirect  eq. 5's interpolation, IDW reconstruction (eq. 1-2) through the client's own G (rebuilt from the
             transferred records), optionally at reduced resolution with joint bilateral upsampling; the ambient
             function F_a·AO (§3.4-3.5, AO traced) where eq. 2 is 0/0 or on dynamic geometry.
+  compose   direct + albedo · E / π.
+On a tracer with a device path (Mitsuba llvm/cuda) the client frame stays on the device from the G-buffer to the
+composed image (device.py: the same values as the host path); Embree runs the host path.
 The client asks for the next update when the previous response has arrived (request/response, §4.1, §5.3).
 """
 from __future__ import annotations
@@ -140,6 +143,9 @@ class Rail(Method):
         "update_interval_ms": "recorded interval τ between the last two cache updates (on update frames)",
         "predicted_interval_ms": "eq. 6's current estimate ΔT",
         "irradiance_pixels": "pixels at which IDW ran (fewer with irradiance_scale > 1)",
+        "host_device_bytes": "bytes the reconstruction copied between host and device memory (device path: the "
+                             "records' irradiance every frame, G after a full transfer, the fallback pixels; 0 on "
+                             "the host path)",
     }
     update_outputs = {
         "points": "|Q|",
@@ -197,6 +203,8 @@ class Rail(Method):
         self._sent: dict[int, dict] = {}
         # client side
         self._cg: ClientGrid | None = None
+        self._device_grid = None           # (the ClientGrid, its DeviceGrid) on a tracer with a device path
+        self._dynamic_device = None        # (key, Bool table of dynamic faces) on the device
         self._E_c = self._E_d = self._E_shown = None
         self._predictor = IntervalPredictor(float(self.params["w_d"]), float(self.params["delta_t0_ms"]))
         self._last_update_ms = None
@@ -274,17 +282,23 @@ class Rail(Method):
         return n_cells
 
     def client_frame(self, ctx, update):
-        from suite.core.gbuffer import render_gbuffer
+        from suite.core.gbuffer import has_device, render_gbuffer, render_gbuffer_device
         from suite.core.shading import direct_lighting
 
         p = self.params
         w, h = ctx.resolution
+        # On a tracer with a device path (Mitsuba llvm/cuda) the frame stays on the device from the G-buffer to the
+        # composed image (device.py); Embree runs the host path. Both count the same work.
+        on_device = has_device(ctx.tracer)
         with ctx.stage("gbuffer", place="client") as st:
-            g = render_gbuffer(ctx.scene, ctx.tracer, ctx.t_s, resolution=(w, h), prev_t_s=ctx.prev_t_s)
+            render = render_gbuffer_device if on_device else render_gbuffer
+            g = render(ctx.scene, ctx.tracer, ctx.t_s, resolution=(w, h), prev_t_s=ctx.prev_t_s)
             st.pixels = w * h
         with ctx.stage("direct", place="client") as st:
-            direct = np.asarray(direct_lighting(ctx.scene, g, ctx.tracer, ctx.t_s,
-                                                area_samples=int(p["area_samples"]), seed=ctx.seed), np.float32)
+            direct = direct_lighting(ctx.scene, g, ctx.tracer, ctx.t_s, area_samples=int(p["area_samples"]),
+                                     seed=ctx.seed)
+            if not on_device:
+                direct = np.asarray(direct, np.float32)
             st.pixels = w * h
         applied = 0
         if update is not None and update.is_new and "grid" in update.messages:
@@ -300,32 +314,59 @@ class Rail(Method):
                     self._rejected += 1
                     self._flags |= RESYNC | (NEED_FULL if self._cg is None else 0)
                     self._outstanding = None
-        irradiance = np.zeros((h, w, 3), np.float32)
+        irradiance = None
         info = {"fallback_pixels": 0, "zero_weight_pixels": 0, "no_ambient_pixels": 0, "records_visited_mean": 0.0,
-                "irradiance_pixels": 0}
+                "irradiance_pixels": 0, "host_device_bytes": 0}
         if self._cg is not None:
             with ctx.stage("indirect", place="client") as st:
-                irradiance, info = self._reconstruct(ctx, g)
+                irradiance, info = (self._reconstruct_device if on_device else self._reconstruct)(ctx, g)
                 st.pixels = info["irradiance_pixels"]
                 st.count(taps=int(info["records_visited_total"]))
-        rgb = direct + g.albedo * irradiance * INV_PI * g.valid[..., None]
+        with ctx.stage("compose", place="client") as st:
+            # final = direct + albedo · E / π (the diffuse indirect term), float32 on both paths
+            if on_device:
+                rgb = direct.rgb
+                if irradiance is not None:
+                    dr = g.device.dr
+                    rgb = rgb + dr.select(g.valid, g.albedo * irradiance * dr.opaque(g.device.Float, INV_PI), 0.0)
+                g.device.eval(rgb)
+            else:
+                rgb = direct if irradiance is None else direct + g.albedo * irradiance * INV_PI * g.valid[..., None]
+            st.pixels = w * h
+        if on_device:
+            # The client shows the image from device memory; this read-back is the harness's (metrics, results).
+            rgb = g.device.to_host(rgb, np.float32).reshape(h, w, 3)
         ctx.record(cache_ready=self._cg is not None, rejected_updates=self._rejected, requests_sent=self._requests,
                    update_cells=applied, predicted_interval_ms=self._predictor.delta_t_ms,
                    **{k: v for k, v in info.items() if k in self.outputs})
         return rgb.astype(np.float32)
 
-    def _reconstruct(self, ctx, g):
-        """Irradiance (H, W, 3) at every visible pixel: IDW through G, the ambient function where it is 0/0."""
-        p = self.params
-        cg = self._cg
-        h, w = g.depth.shape
-        zl = ctx.zero_latency or not bool(p["smoothing"])
+    def _shown_irradiance(self, ctx) -> np.ndarray:
+        """The records' irradiance this frame shows: E_c, or eq. 5's interpolation from E_d while smoothing."""
+        zl = ctx.zero_latency or not bool(self.params["smoothing"])
         if zl or self._last_update_ms is None:
             self._E_shown = self._E_c.copy()
         else:                                           # stage 2, eq. 5
             t = self._now_ms(ctx) - self._last_update_ms
             self._E_shown = interpolate(self._E_d, self._E_c, t, self._predictor.delta_t_ms)
-        E = self._E_shown
+        return self._E_shown
+
+    def _ambient(self, ctx, E, positions, normals) -> tuple[np.ndarray, int]:
+        """F_a · AO (eq. 4) at the fallback pixels (float32 (M, 3)) and how many of them the ambient grid had no
+        value for."""
+        p, cg = self.params, self._cg
+        A, defined = cg.ambient.values(E, int(p["ambient_iterations"]))
+        fa, found = cg.ambient.lookup(A, defined, positions)
+        ao_distance_m = float(cg.range_m.max()) if len(cg) else 1.0      # the records' largest reach
+        ao = ambient_occlusion(positions, normals, ctx.tracer, int(p["client_ao_rays"]), ao_distance_m,
+                               np.random.default_rng(ctx.seed))
+        return fa * ao[:, None], int((~found).sum())
+
+    def _reconstruct(self, ctx, g):
+        """Irradiance (H, W, 3) at every visible pixel: IDW through G, the ambient function where it is 0/0."""
+        p = self.params
+        cg = self._cg
+        E = self._shown_irradiance(ctx)
         scale = max(1, int(p["irradiance_scale"]))
         sub = (slice(None, None, scale), slice(None, None, scale))
         valid_lo = g.valid[sub]
@@ -338,13 +379,7 @@ class Rail(Method):
         fallback = (wsum <= 0) | dynamic
         no_ambient = 0
         if fallback.any():
-            A, defined = cg.ambient.values(E, int(p["ambient_iterations"]))
-            fa, found = cg.ambient.lookup(A, defined, pos_lo[fallback])
-            no_ambient = int((~found).sum())
-            ao_distance_m = float(cg.range_m.max()) if len(cg) else 1.0      # the records' largest reach
-            ao = ambient_occlusion(pos_lo[fallback], nrm_lo[fallback], ctx.tracer, int(p["client_ao_rays"]),
-                                   ao_distance_m, np.random.default_rng(ctx.seed))
-            phi[fallback] = fa * ao[:, None]            # eq. 4: F_ao = F_a · AO
+            phi[fallback], no_ambient = self._ambient(ctx, E, pos_lo[fallback], nrm_lo[fallback])
         lo_img = np.zeros(valid_lo.shape + (3,), np.float32)
         lo_img[valid_lo] = phi
         if scale > 1:
@@ -355,8 +390,76 @@ class Rail(Method):
         info = {"fallback_pixels": int(fallback.sum()), "zero_weight_pixels": int(zero.sum()),
                 "no_ambient_pixels": no_ambient, "irradiance_pixels": int(valid_lo.sum()),
                 "records_visited_mean": float(visited.mean()) if len(visited) else 0.0,
-                "records_visited_total": int(visited.sum())}
+                "records_visited_total": int(visited.sum()), "host_device_bytes": 0}
         return full, info
+
+    def _reconstruct_device(self, ctx, g):
+        """:meth:`_reconstruct` on the device (device.py): the same values from a DeviceGBuffer, as a Vector3f.
+        Host memory is reached for the records' irradiance (uploaded every frame), G after a full transfer, and
+        the fallback pixels (F_a·AO on the host, scattered back); ``host_device_bytes`` counts them."""
+        from . import device as rdev
+
+        p, cg = self.params, self._cg
+        dev = g.device
+        dr = dev.dr
+        bytes0 = dev.counters["bytes_to_device"] + dev.counters["bytes_to_host"]
+        E = self._shown_irradiance(ctx)
+        if self._device_grid is None or self._device_grid[0] is not cg or self._device_grid[1].dev is not dev:
+            self._device_grid = (cg, rdev.DeviceGrid(dev, cg))
+        grid = self._device_grid[1]
+        scale = max(1, int(p["irradiance_scale"]))
+        w, h = g.width, g.height
+        if scale > 1:       # the samples at full-resolution pixels (i·scale, j·scale), as the host's [::scale]
+            wl, hl = -(-w // scale), -(-h // scale)
+            lo = dev.arange(wl * hl)
+            src = (lo // wl) * (scale * w) + (lo % wl) * scale
+            pos = dr.gather(dev.Point3d, g.position, src)
+            nrm = dr.gather(dev.Vector3f, g.normal, src)
+            valid_lo = dr.gather(dev.Bool, g.valid, src)
+            prim_lo = dr.gather(dev.Int32, g.prim, src)
+            depth_lo = dr.gather(dev.Float, g.depth, src)
+            dev.eval(pos, nrm, valid_lo, prim_lo, depth_lo)
+        else:
+            pos, nrm, valid_lo, prim_lo = g.position, g.normal, g.valid, g.prim
+        phi, wsum, visited = rdev.idw(grid, grid.irradiance(E), pos, dev.Vector3d(nrm), valid_lo,
+                                      float(p["idw_mu"]))
+        dynamic = valid_lo & dr.gather(dev.Bool, self._dynamic_table(dev, ctx.scene), dr.maximum(prim_lo, 0),
+                                       valid_lo)
+        empty = valid_lo & (wsum <= 0.0)
+        fallback = empty | dynamic
+        dev.eval(fallback, empty)
+        n_pixels = int(dr.count(valid_lo)[0])
+        n_fallback = int(dr.count(fallback)[0])
+        n_zero = int(dr.count(empty & ~dynamic)[0])
+        visited_total = dev.sum_u32(visited)
+        lo_img = dev.Vector3f(phi)
+        no_ambient = 0
+        if n_fallback:
+            idx = dr.compress(fallback)         # ascending: the host path's order (its AO rays draw in it)
+            fa, no_ambient = self._ambient(ctx, E, dev.to_host(dr.gather(dev.Point3d, pos, idx), np.float64),
+                                           dev.to_host(dr.gather(dev.Vector3f, nrm, idx), np.float32))
+            dr.scatter(lo_img, dev.to_device(np.asarray(fa, np.float32), dev.Vector3f), idx)
+            dev.eval(lo_img)
+        if scale > 1:
+            full = rdev.joint_bilateral_upsample(dev, lo_img, valid_lo, nrm, depth_lo, (wl, hl), g.normal, g.depth,
+                                                 g.valid, (w, h), scale)
+        else:
+            full = lo_img
+        info = {"fallback_pixels": n_fallback, "zero_weight_pixels": n_zero, "no_ambient_pixels": no_ambient,
+                "irradiance_pixels": n_pixels,
+                "records_visited_mean": visited_total / n_pixels if n_pixels else 0.0,
+                "records_visited_total": visited_total,
+                "host_device_bytes": dev.counters["bytes_to_device"] + dev.counters["bytes_to_host"] - bytes0}
+        return full, info
+
+    def _dynamic_table(self, dev, scene):
+        """:meth:`_dynamic_faces` as a device Bool table (uploaded once per scene and device)."""
+        key = (id(dev), scene.name, scene.num_faces)
+        if self._dynamic_device is None or self._dynamic_device[0] != key:
+            mask = self._dynamic_faces(scene)
+            table = dev.to_device(mask if mask.size else np.zeros(1, bool), dev.Bool)
+            self._dynamic_device = (key, table)
+        return self._dynamic_device[1]
 
     @staticmethod
     def _dynamic_faces(scene) -> np.ndarray:

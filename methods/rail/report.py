@@ -397,7 +397,8 @@ def _bench_part(bench, files) -> str:
         return "<p>No stored benchmark (run <code>splitbench bench rail</code>).</p>"
     out = []
     for key, caption in (("shading", "Point-cloud shading pass (§3.2)"),
-                         ("reconstruction", "IDW reconstruction through G (§3.3)"),
+                         ("reconstruction", "IDW reconstruction through G (§3.3): the host loop (what Embree runs) and, "
+                                           "beside it, the device path on each Dr.Jit backend that worked here"),
                          ("serving", "Serving one request (§4.1) and the amortisation model (§5.3)")):
         part = bench.get(key)
         if not part:
