@@ -37,7 +37,9 @@ Stages in the order of Table 6.9 (TAA is :mod:`.taa`):
 What is filtered is demodulated illumination (radiance / albedo), and the result is multiplied by the albedo again
 in the composition (§6.11), as q2vkpt does. The reprojection is a numba kernel parallel over image rows; the spatial
 variance and the spatial a-trous are the suite's shared filters (:func:`suite.core.denoise.spatial_variance`,
-:func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy; the work counters count one tap per
+:func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy; on a tracer with a Dr.Jit device
+(Mitsuba llvm/cuda) the two filters run as the device kernels of :mod:`suite.core.device.denoise` (the same values
+to rounding; their inputs and outputs are counted copies, ``copied_bytes``); the work counters count one tap per
 pixel and kernel tap and pass.
 """
 from __future__ import annotations
@@ -161,6 +163,26 @@ class ASVGF:
     def reset(self) -> None:
         self.frame = 0
         self.prev = None  # dict of the previous frame's buffers
+        self.device = None  # a suite.core.device.Device: stages 6 and 7 run there (set per frame by the pipeline)
+        self._frame_guides = None  # (Guides, their DeviceFrame): the filter guides uploaded once per frame
+        self.copied_bytes = 0  # bytes stages 6 and 7 copied between host and device memory (device path)
+
+    def _device_frame(self, guides: Guides):
+        """The filter guides on the device (uploaded on the frame's first use, a counted copy)."""
+        from suite.core.device.denoise import DeviceFrame
+
+        if self._frame_guides is None or self._frame_guides[0] is not guides:
+            self._frame_guides = (guides, DeviceFrame.from_host(self.device, guides.filter_depth,
+                                                                guides.filter_normal, guides.valid))
+        return self._frame_guides[1]
+
+    def _copied(self, fn):
+        """Runs ``fn`` and adds what it copied between host and device memory to :attr:`copied_bytes`."""
+        c = self.device.counters
+        before = c["bytes_to_device"] + c["bytes_to_host"]
+        out = fn()
+        self.copied_bytes += c["bytes_to_device"] + c["bytes_to_host"] - before
+        return out
 
     # -- 2. forward projection ---------------------------------------------------------------------------
 
@@ -327,8 +349,11 @@ class ASVGF:
         var = var_t
         if short.any():
             lum = luminance(illum.reshape(self.h, self.w, 3))
-            var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
-                                             float(self.s.phi_normal))
+            if self.device is not None:
+                var_s = self._copied(lambda: self._spatial_variance_device(lum, guides))
+            else:
+                var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
+                                                 float(self.s.phi_normal))
             var = np.where(short, var_s, var_t)
             if st is not None:
                 st.count(taps=self.h * self.w * 25)
@@ -342,11 +367,31 @@ class ASVGF:
         s = self.s
         settings = denoise.AtrousSettings(s.atrous_iterations, int(s.atrous_radius), float(s.phi_color),
                                           float(s.phi_normal), float(s.phi_depth))
-        c, _, history = denoise.atrous(color, var, guides.filter_depth, guides.filter_normal, guides.valid,
-                                       settings, s.feedback_tap)
+        if self.device is not None:
+            c, history = self._copied(lambda: self._atrous_device(color, var, guides, settings))
+        else:
+            c, _, history = denoise.atrous(color, var, guides.filter_depth, guides.filter_normal, guides.valid,
+                                           settings, s.feedback_tap)
         if st is not None:
             st.count(taps=denoise.atrous_taps(self.w, self.h, settings))
         return c, history
+
+    def _spatial_variance_device(self, lum, guides: Guides) -> np.ndarray:
+        from suite.core.device import denoise as dden
+
+        dev, frame = self.device, self._device_frame(guides)
+        out = dden.spatial_variance(frame, dev.to_device(lum.reshape(-1), dev.Float), float(self.s.phi_normal))
+        return dev.to_host(out, np.float32).reshape(self.h, self.w)
+
+    def _atrous_device(self, color, var, guides: Guides, settings):
+        from suite.core.device import denoise as dden
+
+        dev, frame = self.device, self._device_frame(guides)
+        c, _, tapped = dden.atrous(frame, dev.to_device(np.asarray(color, np.float32).reshape(-1, 3), dev.Vector3f),
+                                   dev.to_device(np.asarray(var, np.float32).reshape(-1), dev.Float), settings,
+                                   self.s.feedback_tap)
+        back = lambda x: dev.to_host(x, np.float32).reshape(self.h, self.w, 3)  # noqa: E731
+        return back(c), (back(tapped) if tapped is not None else None)
 
     # -- end of frame ------------------------------------------------------------------------------------------
 

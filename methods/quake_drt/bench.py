@@ -20,7 +20,9 @@ running anything:
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
-    is in use), with the filter taps each stage declares (its work counter, independent of the machine);
+    is in use), with the filter taps each stage declares (its work counter, independent of the machine); beside
+    them the variance and a-trous stages on each Dr.Jit device that works here (``--device``; their kernels in
+    suite.core.device.denoise, the copies to and from the device included: ``llvm_variance_ms``, ...);
     ``ms = a * megapixels`` fitted through the origin to the total (a positive rate whenever the times are, however
     noisy two sizes are) and the exponent of ms against pixels. Seed 001 Fig. 7.8 measures the same on a GPU.
 ``lights``
@@ -43,6 +45,7 @@ import numpy as np
 from methods.quake_drt import asvgf as asvgf_mod
 from methods.quake_drt import culling, direct
 from methods.quake_drt import pipeline as pl
+from suite.core.trace import device_backends
 from suite.core.trace.recording import RecordingTracer
 
 SCHEMA_VERSION = 1
@@ -212,7 +215,20 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
             "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
 
 
-def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int) -> dict:
+_DEVICES: dict = {}
+
+
+def _device_of(scene, backend: str):
+    """The Dr.Jit device of a ``backend`` tracer on ``scene`` (made once per process)."""
+    from suite.core.trace import make
+
+    key = (scene.name, backend)
+    if key not in _DEVICES:
+        _DEVICES[key] = make(backend, scene).device
+    return _DEVICES[key]
+
+
+def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()) -> dict:
     """Part ``asvgf`` (module docstring)."""
     rows = []
     for res in resolutions:
@@ -248,13 +264,30 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int) -> dict:
             return p.taa(composed, raw.g.motion, st)
 
         timed("taa", taa)
+        # Stages 6 and 7 on each Dr.Jit device beside the host filters: the same inputs, the copies included (the
+        # frame's guides go up again in every call, as once per frame in a run).
+        on_device = {}
+        own = den.device
+        for backend in devices:
+            den.device = _device_of(scene, backend)
+
+            def fresh(fn):
+                den._frame_guides = None
+                return fn()
+
+            short = backend.replace("mitsuba-", "")
+            on_device[f"{short}_variance_ms"], _ = _median_ms(
+                lambda: fresh(lambda: den.variance(raw.illum, moments, hist, raw.guides)), repeats)
+            on_device[f"{short}_atrous_ms"], _ = _median_ms(
+                lambda: fresh(lambda: den.atrous(color, var, raw.guides)), repeats)
+        den.device = own
         den.prev = saved
         mp = res[0] * res[1] / 1e6
         total = sum(v for k, v in times.items() if k != "taa")
         rows.append({"resolution": list(res), "megapixels": mp, **{f"{k}_ms": v for k, v in times.items()},
                      **{f"{k}_taps": t.taps for k, t in taps.items()},
                      "denoiser_ms": total, "denoiser_taps": sum(t.taps for k, t in taps.items() if k != "taa"),
-                     "denoiser_ms_per_mp": total / mp, "taa_ms_per_mp": times["taa"] / mp})
+                     "denoiser_ms_per_mp": total / mp, "taa_ms_per_mp": times["taa"] / mp, **on_device})
     return {"scene": scene.name, "repeats": repeats, "rows": rows,
             "fit": fit_ms_per_mp([r["megapixels"] for r in rows], [r["denoiser_ms"] for r in rows]),
             "settings": "defaults (5 gradient and 5 a-trous passes, 3x3 kernel)"}
@@ -337,6 +370,8 @@ def parser():
     ap.add_argument("--resolutions", default="160x90,320x180,640x360", help="asvgf and lights-by-pixels resolutions")
     ap.add_argument("--rays-larger", default="640x360", help="further sizes for part rays, comma-separated ('' for "
                     "none): its ratios by pixels")
+    ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the variance and a-trous stages on "
+                    "beside the host filters (auto: every one that works here; '' for none)")
     ap.add_argument("--time", type=float, default=1.0, help="scene time of the benchmarked view, seconds")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="results", help="results root; the document goes to <out>/bench/")
@@ -390,7 +425,9 @@ def run(args) -> dict:
                   for r in _resolutions(args.rays_larger)]
         out["rays"]["by_pixels"] = [ratios_row(r) for r in [out["rays"], *larger]]
     if "asvgf" in parts:
-        out["asvgf"] = {"backend": args.backend, **bench_asvgf(scene, tracer, many, args.time, args.repeats)}
+        devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
+        out["asvgf"] = {"backend": args.backend, "devices": devices,
+                        **bench_asvgf(scene, tracer, many, args.time, args.repeats, devices)}
     if "lights" in parts:
         out["lights"] = {"backend": args.backend,
                          **bench_lights(scene, tracer, res, many, args.time, args.repeats)}
@@ -420,9 +457,16 @@ def format_results(out: dict) -> str:
         lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")
         for row in r["rows"]:
             w, h = row["resolution"]
-            stages = "  ".join(f"{k[:-3]} {row[k]:.1f}" for k in row if k.endswith("_ms") and k != "denoiser_ms")
+            devs = tuple(b.replace("mitsuba-", "") + "_" for b in r.get("devices", []))
+            stages = "  ".join(f"{k[:-3]} {row[k]:.1f}" for k in row
+                               if k.endswith("_ms") and k != "denoiser_ms" and not k.startswith(devs or ("\0",)))
             lines.append(f"  {w}x{h}: denoiser {row['denoiser_ms']:.1f} ms ({row['denoiser_ms_per_mp']:.0f} ms/MP), "
                          f"{stages}")
+            for b in r.get("devices", []):
+                short = b.replace("mitsuba-", "")
+                lines.append(f"    on {b}: variance {row[short + '_variance_ms']:.1f} ms (host "
+                             f"{row['variance_ms']:.1f}), a-trous {row[short + '_atrous_ms']:.1f} ms "
+                             f"(host {row['atrous_ms']:.1f})")
         if r["fit"]:
             lines.append(f"  fit: {r['fit']['ms_per_mp']:.0f} ms/MP (through the origin), "
                          f"R² {r['fit']['r2']:.4f}, exponent {r['fit']['exponent']:.2f}")

@@ -308,6 +308,8 @@ class Pipeline:
         """(displayed image, denoised image before TAA or None, raw frame, record of per-frame facts)."""
         s, w, h = self.s, self.w, self.h
         den = self.denoiser
+        den.device = getattr(tracer, "device", None)  # a Dr.Jit backend's: the filters run there
+        den.copied_bytes = 0
         with stage("asvgf_rng_forward") as st:
             seeds = rng.pixel_seeds(frame_seed, w, h).reshape(-1)
             fwd = None
@@ -346,7 +348,8 @@ class Pipeline:
             record.update(gradient_samples=int(len(fwd)) if fwd is not None else 0,
                           antilag_mean=float(alag[valid].mean()) if valid.any() else 0.0,
                           hist_len_mean=float(hist[valid].mean()) if valid.any() else 0.0,
-                          hist_len_max=float(hist.max()) if hist.size else 0.0)
+                          hist_len_max=float(hist.max()) if hist.size else 0.0,
+                          host_device_bytes=den.copied_bytes)
             with stage("composition") as st:
                 denoised = raw.compose(filtered, s.illumination)
                 st.pixels = w * h

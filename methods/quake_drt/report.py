@@ -518,7 +518,12 @@ def _bench_part(bench, files: SectionFiles) -> str:
                             f", median of {a['repeats']}")
                    + f"<p>Bench: A-SVGF stages and TAA, ms (Fig. 7.8 measures the same on a GPU). Fit: "
                      f"{fit.get('ms_per_mp', float('nan')):.0f} ms per megapixel (through the origin)"
-                     f", R² {fit.get('r2', float('nan')):.4f}." + files.csv(t, "bench_asvgf.csv") + "</p>"
+                     f", R² {fit.get('r2', float('nan')):.4f}."
+                   + (f" The columns <code>&lt;device&gt;_variance_ms</code> and <code>&lt;device&gt;_atrous_ms</code> "
+                      f"time those two stages as Dr.Jit kernels on {esc(', '.join(a['devices']))} (the copies to "
+                      f"and from the device included), beside the host filters of the other columns."
+                      if a.get("devices") else "")
+                   + files.csv(t, "bench_asvgf.csv") + "</p>"
                    + table_html(t))
     lt = bench.get("lights")
     if lt:

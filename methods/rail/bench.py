@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from suite.core.trace import device_backends
 from suite.core.trace.recording import RecordingTracer
 
 SCHEMA_VERSION = 1
@@ -127,14 +128,6 @@ def _gbuffer_samples(scene, tracer, resolution):
     t = scene.camera.frame_time_s(0) + 0.5 * scene.camera.duration_s
     g = render_gbuffer(scene, tracer, t, resolution=resolution)
     return g.position[g.valid], g.normal[g.valid], int(g.valid.sum())
-
-
-def device_backends() -> list[str]:
-    """The Dr.Jit backends that work on this machine (``mitsuba-llvm``; ``mitsuba-cuda`` with a GPU)."""
-    from suite.core.trace import backend_status
-
-    status = backend_status()
-    return [b for b in ("mitsuba-llvm", "mitsuba-cuda") if status.get(b, {}).get("available")]
 
 
 _DEVICE_TRACERS: dict = {}

@@ -95,7 +95,7 @@ class VideoStream(Method):
                 from suite.core.gbuffer import render_gbuffer
 
                 g = render_gbuffer(ctx.scene, ctx.tracer, t_s, (w, h))
-                image = pathtrace.denoise_frame(traced, g, self.atrous)
+                image = pathtrace.denoise_frame(traced, g, self.atrous, getattr(ctx.tracer, "device", None))
                 st.pixels = w * h
                 st.count(taps=denoise.atrous_taps(w, h, self.atrous))
 

@@ -12,7 +12,8 @@ per pixel, denoised with the suite's edge-avoiding a-trous filter guided by the 
    :func:`suite.core.denoise.atrous` on the G-buffer's depth and normals, with the luminance variance of the
    demodulated estimate from the passes' standard error (one pass: the bilateral 5x5 spatial estimate,
    :func:`suite.core.denoise.spatial_variance`); the albedo is
-   multiplied back in. Pixels that see an emitter or no surface pass through unfiltered and are never taps.
+   multiplied back in. Pixels that see an emitter or no surface pass through unfiltered and are never taps. On
+   a Mitsuba llvm/cuda tracer the filters run as Dr.Jit kernels (:mod:`suite.core.device.denoise`).
 
 This is the spatial half of SVGF (Schied et al. 2017 §4.4); there is no temporal accumulation, so every frame is
 denoised from its own samples (no ghosting, more residual noise at low spp).
@@ -46,8 +47,17 @@ def path_trace(scene, t_s: float, resolution, spp: int, max_depth: int, seed: in
     return PathFrame(mean, stderr)
 
 
-def denoise_frame(frame: PathFrame, g, settings: denoise.AtrousSettings) -> np.ndarray:
-    """Stage 2 of the module docstring: the denoised radiance, from the path frame and the G-buffer ``g``."""
+def denoise_frame(frame: PathFrame, g, settings: denoise.AtrousSettings, device=None) -> np.ndarray:
+    """Stage 2 of the module docstring: the denoised radiance, from the path frame and the G-buffer ``g``. With a
+    Dr.Jit ``device`` (a Mitsuba llvm/cuda tracer's) the filters run as its kernels (suite.core.device.denoise:
+    the same values to rounding; inputs and results are counted copies)."""
+    if device is not None:
+        from suite.core.device import denoise as dden
+
+        atrous = lambda *a: dden.atrous_arrays(device, *a)  # noqa: E731
+        spatial_variance = lambda *a: dden.spatial_variance_arrays(device, *a)  # noqa: E731
+    else:
+        atrous, spatial_variance = denoise.atrous, denoise.spatial_variance
     from suite.core.scene.model import KIND_CODES
 
     emits = g.emission.max(axis=-1) > 0
@@ -59,6 +69,6 @@ def denoise_frame(frame: PathFrame, g, settings: denoise.AtrousSettings) -> np.n
     if np.isfinite(frame.stderr).all():
         variance = denoise.luminance(frame.stderr / albedo) ** 2
     else:
-        variance = denoise.spatial_variance(denoise.luminance(illum), g.depth, g.normal, filtered)
-    out, _, _ = denoise.atrous(illum, variance, np.where(filtered, g.depth, 0.0), g.normal, filtered, settings)
+        variance = spatial_variance(denoise.luminance(illum), g.depth, g.normal, filtered)
+    out, _, _ = atrous(illum, variance, np.where(filtered, g.depth, 0.0), g.normal, filtered, settings)
     return np.where(filtered[..., None], out * albedo, frame.noisy).astype(np.float32)

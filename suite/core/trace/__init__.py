@@ -55,6 +55,13 @@ def backend_status() -> dict[str, dict]:
     return out
 
 
+def device_backends() -> list[str]:
+    """The backends with a Dr.Jit device path that work on this machine (``mitsuba-llvm``; ``mitsuba-cuda`` with a
+    GPU): what benchmarks time the device kernels on."""
+    status = backend_status()
+    return [b for b in ("mitsuba-llvm", "mitsuba-cuda") if status.get(b, {}).get("available")]
+
+
 def backend_params(*names):
     """pytest parameters for backend names, each skipped with its reason where it does not work on this machine
     (``mitsuba-cuda`` without a GPU). For backend-parametrised tests."""

@@ -6,6 +6,7 @@ import pytest
 
 from suite.core import denoise
 from suite.core.metrics import to_display
+from suite.core.trace import backend_params
 from suite.errors import UserError
 from methods.video_stream import pathtrace
 from methods.video_stream.method import VideoStream
@@ -59,3 +60,23 @@ def test03_bad_renderer_settings_are_one_line_errors():
         VideoStream({"renderer": "raster"})
     with pytest.raises(UserError, match="path_spp"):
         VideoStream({"renderer": "path", "path_spp": 0})
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+@pytest.mark.parametrize("spp", [1, 4])   # one pass: the spatial variance; four: the passes' standard error
+def test04_on_a_drjit_backend_the_filters_run_on_the_device_with_the_host_filters_values(backend, spp):
+    from suite.core.gbuffer import render_gbuffer
+    from suite.core.trace import make
+    from suite.harness import runner
+
+    scene = runner.load_scene("gallery")
+    t_s = scene.camera.frame_time_s(0)
+    frame = pathtrace.path_trace(scene, t_s, RES, spp=spp, max_depth=4, seed=1)
+    tracer = make(backend, scene)
+    g = render_gbuffer(scene, tracer, t_s, RES)
+    host = pathtrace.denoise_frame(frame, g, denoise.AtrousSettings())
+    copied = tracer.device.counters["bytes_to_host"]
+    dev = pathtrace.denoise_frame(frame, g, denoise.AtrousSettings(), tracer.device)
+    assert tracer.device.counters["bytes_to_host"] > copied
+    assert not np.allclose(host, frame.noisy)
+    np.testing.assert_allclose(dev, host, rtol=1e-5, atol=1e-6)

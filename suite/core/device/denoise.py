@@ -1,0 +1,229 @@
+""":mod:`suite.core.denoise` on the device: the edge-avoiding à-trous passes and the bilateral spatial variance as
+Dr.Jit kernels, one code path for ``llvm_ad_rgb`` and ``cuda_ad_rgb`` (module docstring of suite.core.denoise for
+the filter and its equations).
+
+Images are flat row-major arrays of ``width * height`` pixels (:class:`DeviceFrame` holds one frame's guides). Every
+float operation is the host kernel's, in its order and precision (float32 depth differences and normal dot
+products, float64 weights and sums, invalid taps adding ``colour * 0``, taps outside the image skipped); the one
+difference is ``exp``, which Dr.Jit evaluates with its own polynomial instead of the C library's, so the two paths
+agree to rounding, not bit for bit (tests/core/test_device_denoise.py). One kernel per pass.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from suite.core.denoise import AtrousSettings, _whole, kernel
+
+
+@dataclass
+class DeviceFrame:
+    """One frame's filter guides on the device: ``depth`` (Float, 0 where not valid), ``normal`` (Vector3f),
+    ``valid`` (Bool), flat row-major."""
+
+    device: object
+    width: int
+    height: int
+    depth: object
+    normal: object
+    valid: object
+
+    @classmethod
+    def from_host(cls, dev, depth, normal, valid) -> "DeviceFrame":
+        """Uploads (H, W) depth, (H, W, 3) normals and (H, W) validity (counted copies); depth is zeroed where not
+        valid, as :func:`suite.core.denoise.atrous` does."""
+        h, w = np.shape(valid)
+        valid = np.asarray(valid, bool)
+        z = np.where(valid, np.asarray(depth, np.float32), 0.0).astype(np.float32)
+        return cls(dev, w, h, dev.to_device(z.reshape(-1), dev.Float),
+                   dev.to_device(np.ascontiguousarray(normal, np.float32).reshape(-1, 3), dev.Vector3f),
+                   dev.to_device(valid.reshape(-1), dev.Bool))
+
+
+class _Grid:
+    """Pixel coordinates of a frame and its taps at integer offsets (a gather index and an inside mask)."""
+
+    def __init__(self, dev, width: int, height: int):
+        self.dev, self.w, self.h = dev, int(width), int(height)
+        i = dev.arange(self.w * self.h)
+        self.y, self.x = dev.Int32(i // self.w), dev.Int32(i % self.w)
+        self.i = i
+
+    def tap(self, dy, dx):
+        """(index of pixel (y + dy, x + dx), whether it lies in the image); None when no pixel's tap does. The
+        offsets are ints, or Int32 values read from memory (one kernel for every pass of a filter)."""
+        if isinstance(dy, int) and isinstance(dx, int) and (abs(dy) >= self.h or abs(dx) >= self.w):
+            return None
+        yy, xx = self.y + dy, self.x + dx
+        inside = (yy >= 0) & (yy < self.h) & (xx >= 0) & (xx < self.w)
+        return self.dev.UInt32(self.dev.dr.select(inside, yy * self.w + xx, 0)), inside
+
+
+def _pow(dev, x, e: float):
+    """:func:`suite.core.denoise._pow` (repeated squaring for a whole exponent in [0, 4096])."""
+    k = _whole(e)
+    if k < 0:
+        return dev.dr.power(x, e)
+    r, b = None, x
+    while k > 0:
+        if k & 1:
+            r = b if r is None else r * b
+        b = b * b
+        k >>= 1
+    return dev.dr.full(dev.Float64, 1.0, dev.dr.width(x)) if r is None else r
+
+
+def _dot32(n, m):
+    """The float32 dot product in the host's order: (n0 m0 + n1 m1) + n2 m2."""
+    return (n.x * m.x + n.y * m.y) + n.z * m.z
+
+
+def _lum64(dev, c):
+    F64 = dev.Float64
+    return (F64(c.x) * 0.2126 + F64(c.y) * 0.7152) + F64(c.z) * 0.0722
+
+
+def depth_fwidth(frame: DeviceFrame, grid: _Grid | None = None):
+    """:func:`suite.core.denoise.depth_fwidth` of the frame's (zeroed) depth: the largest |dz| to a valid
+    4-neighbour, float32."""
+    dev = frame.device
+    dr, F = dev.dr, dev.Float
+    grid = grid or _Grid(dev, frame.width, frame.height)
+    d = dr.select(frame.valid, frame.depth, 0.0)
+    out = dr.zeros(F, frame.width * frame.height)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        t = grid.tap(dy, dx)
+        if t is None:
+            continue
+        q, inside = t
+        ok = inside & dr.gather(dev.Bool, frame.valid, q, inside)
+        out = dr.maximum(out, dr.select(ok, dr.abs(dr.gather(F, d, q, inside) - d), 0.0))
+    return out
+
+
+def _gaussian3x3(dev, grid: _Grid, v):
+    """:func:`suite.core.denoise.gaussian3x3` in float64, row-major tap order, zero outside the image."""
+    dr, F64 = dev.dr, dev.Float64
+    g = dr.zeros(F64, grid.w * grid.h)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            t = grid.tap(dy, dx)
+            if t is None:
+                continue
+            q, inside = t
+            wgt = (0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5)
+            g = g + dr.select(inside, F64(dr.gather(dev.Float, v, q, inside)) * wgt, 0.0)
+    return g
+
+
+def atrous_pass(frame: DeviceFrame, c, v, fw, step: int, s: AtrousSettings, grid: _Grid | None = None):
+    """One pass with tap spacing ``step``: (colour Vector3f, variance Float), evaluated. ``fw``: max(|grad z|,
+    1e-8) as :func:`atrous` computes it. The step is read from memory, so every pass runs the same kernel."""
+    dev = frame.device
+    dr, F, F64 = dev.dr, dev.Float, dev.Float64
+    grid = grid or _Grid(dev, frame.width, frame.height)
+    step_i = dev.opaque(dev.Int32, int(step))
+    step_f = dev.opaque(F64, float(step))
+    kern = kernel(int(s.radius))
+    r = int(s.radius)
+    k00 = kern[0] * kern[0]
+    z, n, valid = frame.depth, frame.normal, frame.valid
+    g = _gaussian3x3(dev, grid, v)
+    g = dr.select(g < 0.0, 0.0, g)  # the host's clamp: NaN stays NaN
+    phi_l = dev.opaque(F64, float(s.phi_color)) * dr.sqrt(g + 1e-10)
+    lum = _lum64(dev, c)
+    depth_scale = dev.opaque(F64, float(s.phi_depth)) * F64(fw) * step_f
+    a = dev.Vector3d(c) * k00
+    va = F64(v) * k00 * k00
+    ws = dr.full(F64, k00, grid.w * grid.h)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dx == 0 and dy == 0:
+                continue
+            q, inside = grid.tap(dy * step_i, dx * step_i)
+            cq = dr.gather(dev.Vector3f, c, q, inside)
+            vq = dr.gather(F, v, q, inside)
+            tap = inside & valid & dr.gather(dev.Bool, valid, q, inside)
+            wl = dr.abs(lum - _lum64(dev, cq)) / phi_l
+            wz = F64(dr.abs(z - dr.gather(F, z, q, inside))) / (depth_scale * math.sqrt(float(dx * dx + dy * dy)))
+            dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
+            wq = dr.exp(-wl - wz) * _pow(dev, dot, float(s.phi_normal)) * kern[abs(dx)] * kern[abs(dy)]
+            wq = dr.select(tap, wq, 0.0)
+            # taps outside the image are skipped; invalid ones inside add colour * 0 (the host kernel's sums)
+            a = dr.select(inside, a + dev.Vector3d(cq) * wq, a)
+            va = dr.select(inside, va + F64(vq) * wq * wq, va)
+            ws = dr.select(inside, ws + wq, ws)
+    out_c = dev.Vector3f(a / ws)
+    out_v = F(va / (ws * ws))
+    dr.eval(out_c, out_v)
+    return out_c, out_v
+
+
+def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = AtrousSettings(), feedback_tap: int = 0):
+    """:func:`suite.core.denoise.atrous` on the device: ``settings.iterations`` passes with steps 1, 2, 4, ...;
+    (filtered colour Vector3f, filtered variance Float, the colour after pass ``feedback_tap`` or None)."""
+    dev = frame.device
+    grid = _Grid(dev, frame.width, frame.height)
+    fw = dev.dr.maximum(depth_fwidth(frame, grid), 1e-8)
+    dev.dr.eval(fw)
+    c, v, tapped = color, variance, None
+    for it in range(int(settings.iterations)):
+        c, v = atrous_pass(frame, c, v, fw, 1 << it, settings, grid)
+        if feedback_tap == it + 1:
+            tapped = c
+    return c, v, tapped
+
+
+def spatial_variance(frame: DeviceFrame, lum, phi_normal: float = 128.0, radius: int = 2):
+    """:func:`suite.core.denoise.spatial_variance` on the device (``lum`` Float; the frame's depth and normals):
+    the luminance variance of a bilateral (2r + 1)^2 window, Float, 0 where not valid."""
+    dev = frame.device
+    dr, F, F64 = dev.dr, dev.Float, dev.Float64
+    grid = _Grid(dev, frame.width, frame.height)
+    z, n, valid = frame.depth, frame.normal, frame.valid
+    fw64 = F64(dr.maximum(depth_fwidth(frame, grid), F(1e-3) * z))
+    size = grid.w * grid.h
+    s1, s2, ws = dr.zeros(F64, size), dr.zeros(F64, size), dr.zeros(F64, size)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            t = grid.tap(dy, dx)
+            if t is None:
+                continue
+            q, inside = t
+            near = F64(dr.abs(dr.gather(F, z, q, inside) - z)) < 2.0 * fw64 * float(max(abs(dx), abs(dy), 1))
+            dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
+            ok = inside & valid & dr.gather(dev.Bool, valid, q, inside) & near
+            wq = dr.select(ok, _pow(dev, dot, float(phi_normal)), 0.0)
+            lq = F64(dr.gather(F, lum, q, inside))
+            s1 = dr.select(inside, s1 + wq * lq, s1)
+            s2 = dr.select(inside, s2 + wq * lq * lq, s2)
+            ws = dr.select(inside, ws + wq, ws)
+    ws = dr.maximum(ws, 1e-12)
+    m = s1 / ws
+    out = F(dr.select(valid, dr.maximum(s2 / ws - m * m, 0.0), 0.0))
+    dr.eval(out)
+    return out
+
+
+def atrous_arrays(dev, color, variance, depth, normal, valid, settings: AtrousSettings = AtrousSettings(),
+                  feedback_tap: int = 0):
+    """:func:`suite.core.denoise.atrous`'s signature and results (numpy in, numpy out) with the passes on ``dev``:
+    the inputs go up and the results come back as counted copies."""
+    h, w = np.shape(valid)
+    frame = DeviceFrame.from_host(dev, depth, normal, valid)
+    c, v, tapped = atrous(frame, dev.to_device(np.asarray(color, np.float32).reshape(-1, 3), dev.Vector3f),
+                          dev.to_device(np.asarray(variance, np.float32).reshape(-1), dev.Float), settings,
+                          feedback_tap)
+    img = lambda x: dev.to_host(x, np.float32).reshape(h, w, 3)  # noqa: E731
+    return img(c), dev.to_host(v, np.float32).reshape(h, w), (img(tapped) if tapped is not None else None)
+
+
+def spatial_variance_arrays(dev, lum, depth, normal, valid, phi_normal: float = 128.0, radius: int = 2):
+    """:func:`suite.core.denoise.spatial_variance` (numpy in, numpy out) computed on ``dev``."""
+    h, w = np.shape(valid)
+    frame = DeviceFrame.from_host(dev, depth, normal, valid)
+    out = spatial_variance(frame, dev.to_device(np.asarray(lum, np.float32).reshape(-1), dev.Float), phi_normal,
+                           radius)
+    return dev.to_host(out, np.float32).reshape(h, w)
