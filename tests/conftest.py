@@ -17,3 +17,21 @@ if os.path.isdir(_SHARED_SCENES):
 @pytest.fixture(autouse=True)
 def _quiet_progress(monkeypatch):
     monkeypatch.setenv("SPLITBENCH_PROGRESS", "0")
+
+
+_DRJIT_DEVICES: dict = {}
+
+
+@pytest.fixture
+def drjit_device():
+    """``drjit_device(backend)``: the Dr.Jit device of a ``backend`` tracer (on the small cornell scene, made once per
+    session), for tests of device kernels that take their data as arrays."""
+    def get(backend):
+        if backend not in _DRJIT_DEVICES:
+            from suite.core.scene import load
+            from suite.core.trace import make
+
+            _DRJIT_DEVICES[backend] = make(backend, load("cornell")).device
+        return _DRJIT_DEVICES[backend]
+
+    return get

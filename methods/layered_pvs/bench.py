@@ -12,6 +12,10 @@ them replays through the suite's queries, and the row says so); medians of the r
 
 One update is made outside the harness with :class:`LocalContext` (stages timed with ``perf_counter``).
 
+``svgf_host_ms`` and ``svgf_<device>_ms``: the layered SVGF (§4.4.1) on the recorded update's own inputs, the numba
+kernel and the Dr.Jit kernel (methods/layered_pvs/device.py, copies included) on each Dr.Jit backend that works here
+(``--device``), medians of the row's repeats.
+
 The default sizes (:data:`DEFAULT_RESOLUTIONS`) run from 160x90 to 960x540, half the thesis's 1920x1080 in each
 direction: the ratios grow with the pixels, as each query's and each pass's fixed costs spread over more rays.
 """
@@ -131,13 +135,59 @@ def _replay(tracer, log):
     return rays, replay, raw
 
 
-def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3):
+@contextmanager
+def _denoise_inputs():
+    """Keeps the arguments of the update's layered SVGF (``server.denoise_fragments``) in the yielded dict."""
+    from methods.layered_pvs import server
+
+    kept, original = {}, server.denoise_fragments
+
+    def keep(*args, **kwargs):
+        kept["args"] = args  # the data; the method names its device by keyword
+        return original(*args, **kwargs)
+
+    server.denoise_fragments = keep
+    try:
+        yield kept
+    finally:
+        server.denoise_fragments = original
+
+
+def _svgf_ms(args, devices, scene, repeats: int) -> dict:
+    """The layered SVGF on the recorded update's inputs: host (numba) ms and, per Dr.Jit device, the device kernel's
+    ms (copies included); medians of ``repeats`` calls after a warm-up."""
+    from methods.layered_pvs import server
+    from suite.core.trace import make
+
+    out = {}
+    for name, device in [("host", None)] + [(b.replace("mitsuba-", ""), _device(scene, b, make)) for b in devices]:
+        server.denoise_fragments(*args, device=device)
+        times = []
+        for _ in range(max(int(repeats), 1)):
+            t0 = time.perf_counter()
+            server.denoise_fragments(*args, device=device)
+            times.append(1e3 * (time.perf_counter() - t0))
+        out[f"svgf_{name}_ms"] = float(np.median(times))
+    return out
+
+
+_DEVICES: dict = {}
+
+
+def _device(scene, backend, make):
+    if (scene.name, backend) not in _DEVICES:
+        _DEVICES[scene.name, backend] = make(backend, scene).device
+    return _DEVICES[scene.name, backend]
+
+
+def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3, devices=()):
     rows = []
     for res in resolutions:
         for L in layer_counts:
             p = {**params, "layers": L}
             rec = RecordingTracer(tracer)
-            ctx, _, _, _ = one_update(scene, rec, p, res, t_s, t_s + 0.1)  # records the rays (and warms up)
+            with _denoise_inputs() as svgf_inputs:
+                ctx, _, _, _ = one_update(scene, rec, p, res, t_s, t_s + 0.1)  # records the rays (and warms up)
             replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
             stage_ms = {stage: [] for stage in SERVER_STAGES}
             raw_ms = {stage: [] for stage in SERVER_STAGES}
@@ -163,7 +213,8 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
                          "client_decode_ms": cctx.stage_ms.get("decode"), "client_peel_ms": cctx.stage_ms.get("peel"),
                          "client_render_ms": cctx.stage_ms.get("render"),
                          "render_ms_per_mpix": cctx.stage_ms.get("render") / (res[0] * res[1] / 1e6),
-                         "update_bytes": len(ctx.sent["update"])})
+                         "update_bytes": len(ctx.sent["update"]),
+                         **(_svgf_ms(svgf_inputs["args"], devices, scene, reps) if "args" in svgf_inputs else {})})
     return rows
 
 
@@ -235,6 +286,8 @@ def run(argv=None) -> dict:
     ap.add_argument("--codec-size", type=int, default=512, help="side of the codec benchmark's mask (pixels)")
     ap.add_argument("--repeats", type=int, default=3, help="timed updates per row (median; at least "
                     f"{SMALL_ROW_REPEATS} for rows of up to {SMALL_ROW_PIXELS} pixels), after one recording")
+    ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the layered SVGF on beside the numba "
+                    "kernel (auto: every one that works here; '' for none)")
     ap.add_argument("--out", default="results")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -255,8 +308,11 @@ def run(argv=None) -> dict:
 
     _warm_up()
     t_s = 0.5 * scene.camera.duration_s
-    out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS,
-           "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s, args.repeats),
+    from suite.core.trace import device_backends
+
+    devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
+    out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS, "devices": devices,
+           "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s, args.repeats, devices),
            "codecs": codec_rows(args.codec_size)}
     # Images at the largest resolution: the client 0.15 s after the update, against the update rendered there.
     big = res[-1]

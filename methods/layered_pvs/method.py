@@ -205,7 +205,8 @@ class LayeredPVS(Method):
         with ctx.stage("denoise", place="server") as sg:
             k, y, x = frag.index
             iters = int(p["denoise_iterations"])
-            illum = server.denoise_fragments(view, layers, frag, illum, m1, m2, int(p["spp"]), iters)
+            illum = server.denoise_fragments(view, layers, frag, illum, m1, m2, int(p["spp"]), iters,
+                                             device=getattr(ctx.tracer, "device", None))
             radiance = illum * frag.albedo + frag.emission
             colour = np.zeros(shape + (3,), np.uint8)
             colour[k, y, x] = video.to_video(radiance[None].astype(np.float32), float(p["exposure"]))[0]

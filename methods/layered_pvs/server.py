@@ -12,6 +12,7 @@ import os
 import threading
 from contextlib import nullcontext
 from dataclasses import dataclass
+from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -937,9 +938,11 @@ def scatter_fragments(values: np.ndarray, index, shape, dim: int) -> np.ndarray:
 
 
 def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m1, m2, spp: int,
-                      iterations: int) -> np.ndarray:
+                      iterations: int, device=None) -> np.ndarray:
     """The layered SVGF (§4.4.1) applied to ``path_trace``'s output: per-fragment demodulated illumination
-    (N, 3) after ``iterations`` à-trous passes (unchanged with 0 passes or no fragment)."""
+    (N, 3) after ``iterations`` à-trous passes (unchanged with 0 passes or no fragment). With a Dr.Jit ``device``
+    (a Mitsuba llvm/cuda tracer's) the passes run as its kernel (:mod:`methods.layered_pvs.device`: the same values
+    to rounding; the grids are counted copies)."""
     if iterations <= 0 or len(frag.position) == 0:
         return np.asarray(illum, np.float64)
     shape = layers.prim.shape
@@ -952,9 +955,15 @@ def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m
     k, y, x = frag.index
     pixel_index, pixel_shape = (y, x, k), shape[1:] + shape[:1]
     pixel_grid = lambda vals: scatter_fragments(vals, pixel_index, pixel_shape, 3)  # noqa: E731
-    out = _svgf_passes(pixel_grid(illum), pixel_major(var_g, np.float64), pixel_grid(frag.position),
-                       pixel_grid(frag.normal), pixel_major(layers.valid, np.bool_),
-                       pixel_major(np.where(layers.valid, layers.t, 0.0), np.float64), pix_angle, iterations)
+    if device is not None:
+        from methods.layered_pvs.device import svgf_passes as passes
+
+        passes = partial(passes, device)
+    else:
+        passes = _svgf_passes
+    out = passes(pixel_grid(illum), pixel_major(var_g, np.float64), pixel_grid(frag.position),
+                 pixel_grid(frag.normal), pixel_major(layers.valid, np.bool_),
+                 pixel_major(np.where(layers.valid, layers.t, 0.0), np.float64), pix_angle, iterations)
     return out[pixel_index].astype(np.float32).astype(np.float64)
 
 

@@ -8,19 +8,9 @@ import pytest
 
 from suite.core import denoise
 from suite.core.device import denoise as dden
-from suite.core.scene import load
-from suite.core.trace import backend_params, make
+from suite.core.trace import backend_params
 
 DRJIT = backend_params("mitsuba-llvm", "mitsuba-cuda")
-_DEVICES: dict = {}
-
-
-def _device(backend):
-    if backend not in _DEVICES:
-        _DEVICES[backend] = make(backend, load("cornell")).device
-    return _DEVICES[backend]
-
-
 def _frame(h, w, seed=0):
     """Random colour and variance over guides with holes, a depth step, a crease and random normals."""
     rng = np.random.default_rng(seed)
@@ -43,14 +33,15 @@ def _close(a, b):
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-@pytest.mark.parametrize("radius, phi_normal, iterations, feedback", [(1, 128.0, 5, 1), (2, 17.5, 3, 2), (1, 0.0, 7, 0)])
-def test01_device_atrous_gives_the_host_filter(backend, radius, phi_normal, iterations, feedback):
+@pytest.mark.parametrize("radius, phi_normal, iterations, feedback",
+                         [(1, 128.0, 5, 1), (2, 17.5, 3, 2), (1, 0.0, 7, 0)])
+def test01_device_atrous_gives_the_host_filter(drjit_device, backend, radius, phi_normal, iterations, feedback):
     # 7 passes reach step 64, wider than the 47x33 image: those taps all leave it
     c, v, z, n, valid = _frame(33, 47, seed=radius)
     s = denoise.AtrousSettings(iterations=iterations, radius=radius, phi_normal=phi_normal, phi_depth=0.5,
                                phi_color=4.0)
     ref_c, ref_v, ref_tap = denoise.atrous(c, v, z, n, valid, s, feedback)
-    out_c, out_v, out_tap = dden.atrous_arrays(_device(backend), c, v, z, n, valid, s, feedback)
+    out_c, out_v, out_tap = dden.atrous_arrays(drjit_device(backend), c, v, z, n, valid, s, feedback)
     assert out_c.dtype == np.float32 and out_c.shape == ref_c.shape
     _close(out_c, ref_c)
     _close(out_v, ref_v)
@@ -63,30 +54,30 @@ def test01_device_atrous_gives_the_host_filter(backend, radius, phi_normal, iter
 
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("h, w", [(1, 1), (1, 6), (5, 1), (2, 3)])
-def test02_images_smaller_than_the_kernel(backend, h, w):
+def test02_images_smaller_than_the_kernel(drjit_device, backend, h, w):
     c, v, z, n, valid = _frame(h, w, seed=h * 10 + w)
     valid[:] = True
     s = denoise.AtrousSettings(iterations=3, radius=2)
     ref_c, ref_v, _ = denoise.atrous(c, v, z, n, valid, s)
-    out_c, out_v, _ = dden.atrous_arrays(_device(backend), c, v, z, n, valid, s)
+    out_c, out_v, _ = dden.atrous_arrays(drjit_device(backend), c, v, z, n, valid, s)
     _close(out_c, ref_c)
     _close(out_v, ref_v)
 
 
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("phi_normal, radius", [(128.0, 2), (17.5, 1)])
-def test03_device_spatial_variance_gives_the_host_estimate(backend, phi_normal, radius):
+def test03_device_spatial_variance_gives_the_host_estimate(drjit_device, backend, phi_normal, radius):
     c, _, z, n, valid = _frame(29, 41, seed=7)
     lum = denoise.luminance(c)
     ref = denoise.spatial_variance(lum, z, n, valid, phi_normal, radius)
-    out = dden.spatial_variance_arrays(_device(backend), lum, z, n, valid, phi_normal, radius)
+    out = dden.spatial_variance_arrays(drjit_device(backend), lum, z, n, valid, phi_normal, radius)
     _close(out, ref)
     assert (out[~valid] == 0).all() and (out[valid] > 0).any()
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-def test04_the_device_filter_copies_count_their_bytes(backend):
-    dev = _device(backend)
+def test04_the_device_filter_copies_count_their_bytes(drjit_device, backend):
+    dev = drjit_device(backend)
     c, v, z, n, valid = _frame(10, 12)
     before = dict(dev.counters)
     dden.atrous_arrays(dev, c, v, z, n, valid, denoise.AtrousSettings(iterations=2), 1)
