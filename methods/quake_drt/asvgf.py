@@ -37,9 +37,11 @@ Stages in the order of Table 6.9 (TAA is :mod:`.taa`):
 What is filtered is demodulated illumination (radiance / albedo), and the result is multiplied by the albedo again
 in the composition (§6.11), as q2vkpt does. The reprojection is a numba kernel parallel over image rows; the spatial
 variance and the spatial a-trous are the suite's shared filters (:func:`suite.core.denoise.spatial_variance`,
-:func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy; on a tracer with a Dr.Jit device
-(Mitsuba llvm/cuda) the two filters run as the device kernels of :mod:`suite.core.device.denoise` (the same values
-to rounding; their inputs and outputs are counted copies, ``copied_bytes``); the work counters count one tap per
+:func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy. On a tracer with a Dr.Jit device
+(Mitsuba llvm/cuda) stages 5-7 run as device kernels (the reprojection and accumulation of
+:mod:`methods.quake_drt.device`, the filters of :mod:`suite.core.device.denoise`; the same values to rounding) and
+the colour, moments and history length stay on the device between frames; the frame's inputs go up once and the
+filtered colour comes back (counted copies, ``copied_bytes``). Stages 1-4 stay on the host; the work counters count one tap per
 pixel and kernel tap and pass.
 """
 from __future__ import annotations
@@ -163,9 +165,11 @@ class ASVGF:
     def reset(self) -> None:
         self.frame = 0
         self.prev = None  # dict of the previous frame's buffers
-        self.device = None  # a suite.core.device.Device: stages 6 and 7 run there (set per frame by the pipeline)
+        self.device = None  # a suite.core.device.Device: stages 5-7 run there (set per frame by the pipeline)
         self._frame_guides = None  # (Guides, their DeviceFrame): the filter guides uploaded once per frame
-        self.copied_bytes = 0  # bytes stages 6 and 7 copied between host and device memory (device path)
+        self._frame_device = None  # (Guides, illum, dict): the frame's reprojection guides and inputs on the device
+        self.prev_dev = None  # the history on the device (colour, moments, length, guides) after a device frame
+        self.copied_bytes = 0  # bytes stages 5-7 copied between host and device memory (device path)
 
     def _device_frame(self, guides: Guides):
         """The filter guides on the device (uploaded on the frame's first use, a counted copy)."""
@@ -176,8 +180,9 @@ class ASVGF:
                                                                 guides.filter_normal, guides.valid))
         return self._frame_guides[1]
 
-    def _copied(self, fn):
-        """Runs ``fn`` and adds what it copied between host and device memory to :attr:`copied_bytes`."""
+    def counted_copies(self, fn):
+        """Runs ``fn`` and adds what it copied between host and device memory to :attr:`copied_bytes` (the
+        denoiser's stages and the pipeline's TAA on a device)."""
         c = self.device.counters
         before = c["bytes_to_device"] + c["bytes_to_host"]
         out = fn()
@@ -304,8 +309,14 @@ class ASVGF:
     # -- 5. temporal accumulation ----------------------------------------------------------------------------
 
     def temporal(self, illum: np.ndarray, guides: Guides, alpha_lag: np.ndarray | None, st=None):
-        """(colour, moments, hist_len, reprojected) after accumulating ``illum`` (H, W, 3) into the history."""
+        """(colour, moments, hist_len, reprojected) after accumulating ``illum`` (H, W, 3) into the history. On a
+        device (:attr:`device`) the four are Dr.Jit arrays that stay there (moments as two Float)."""
         h, w = self.h, self.w
+        if self.device is not None:
+            out = self.counted_copies(lambda: self._temporal_device(illum, guides, alpha_lag))
+            if st is not None:
+                st.count(taps=h * w * 4)
+            return out
         cur = illum.reshape(h, w, 3).astype(np.float32)
         lum = luminance(cur)
         mom_cur = np.stack([lum, lum * lum], axis=-1)
@@ -343,17 +354,19 @@ class ASVGF:
     # -- 6. variance -------------------------------------------------------------------------------------------
 
     def variance(self, illum: np.ndarray, moments: np.ndarray, hist: np.ndarray, guides: Guides, st=None):
-        """(H, W) luminance variance (module docstring, stage 6)."""
+        """(H, W) luminance variance (module docstring, stage 6); a device Float on a device."""
+        if self.device is not None:
+            var, short = self.counted_copies(lambda: self._variance_device(illum, moments, hist, guides))
+            if short and st is not None:
+                st.count(taps=self.h * self.w * 25)
+            return var
         var_t = np.maximum(moments[..., 1] - moments[..., 0] ** 2, 0.0)
         short = hist < 4.0
         var = var_t
         if short.any():
             lum = luminance(illum.reshape(self.h, self.w, 3))
-            if self.device is not None:
-                var_s = self._copied(lambda: self._spatial_variance_device(lum, guides))
-            else:
-                var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
-                                                 float(self.s.phi_normal))
+            var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
+                                             float(self.s.phi_normal))
             var = np.where(short, var_s, var_t)
             if st is not None:
                 st.count(taps=self.h * self.w * 25)
@@ -368,7 +381,7 @@ class ASVGF:
         settings = denoise.AtrousSettings(s.atrous_iterations, int(s.atrous_radius), float(s.phi_color),
                                           float(s.phi_normal), float(s.phi_depth))
         if self.device is not None:
-            c, history = self._copied(lambda: self._atrous_device(color, var, guides, settings))
+            c, history = self.counted_copies(lambda: self._atrous_device(color, var, guides, settings))
         else:
             c, _, history = denoise.atrous(color, var, guides.filter_depth, guides.filter_normal, guides.valid,
                                            settings, s.feedback_tap)
@@ -376,29 +389,129 @@ class ASVGF:
             st.count(taps=denoise.atrous_taps(self.w, self.h, settings))
         return c, history
 
-    def _spatial_variance_device(self, lum, guides: Guides) -> np.ndarray:
+    # -- the device path (stages 5-7 as Dr.Jit kernels; methods/quake_drt/device.py, suite.core.device.denoise) ----
+
+    def _device_inputs(self, illum, guides: Guides) -> dict:
+        """The frame's reprojection guides, colour and luminance on the device (uploaded once per frame)."""
+        from methods.quake_drt import device as qd
+
+        if self._frame_device is None or self._frame_device[0] is not guides or self._frame_device[1] is not illum:
+            dev = self.device
+            cur = np.asarray(illum, np.float32).reshape(self.h, self.w, 3)
+            inputs = qd.upload_reprojection_guides(dev, guides)
+            inputs["rgb"] = dev.to_device(cur.reshape(-1, 3), dev.Vector3f)
+            inputs["lum"] = dev.to_device(luminance(cur).reshape(-1), dev.Float)  # numpy's rounding of the product
+            self._frame_device = (guides, illum, inputs)
+        return self._frame_device[2]
+
+    def _previous_on_device(self) -> dict | None:
+        """The history as the device kernels read it (uploaded from the host when the last frame ran there)."""
+        if self.prev is None:
+            return None
+        if self.prev_dev is None:
+            dev, p = self.device, self.prev
+            up = lambda a, t: dev.to_device(np.ascontiguousarray(a).reshape((-1, 3) if a.ndim == 3 else -1), t)  # noqa
+            self.prev_dev = {"valid": up(p["valid"], dev.Bool), "depth": up(p["depth"], dev.Float),
+                             "normal": up(p["normal"], dev.Vector3f), "color": up(p["color"], dev.Vector3f),
+                             "moments": (up(p["moments"][..., 0], dev.Float), up(p["moments"][..., 1], dev.Float)),
+                             "hist": up(p["hist"], dev.Float)}
+        return self.prev_dev
+
+    def _temporal_device(self, illum, guides: Guides, alpha_lag):
+        from types import SimpleNamespace
+
+        from methods.quake_drt import device as qd
         from suite.core.device import denoise as dden
 
-        dev, frame = self.device, self._device_frame(guides)
-        out = dden.spatial_variance(frame, dev.to_device(lum.reshape(-1), dev.Float), float(self.s.phi_normal))
-        return dev.to_host(out, np.float32).reshape(self.h, self.w)
+        dev, w, h = self.device, self.w, self.h
+        dr, F = dev.dr, dev.Float
+        cur = self._device_inputs(illum, guides)
+        prev = self._previous_on_device()
+        tol = None
+        if prev is not None:
+            fw = dden.depth_fwidth(SimpleNamespace(device=dev, width=w, height=h, depth=cur["depth"],
+                                                   valid=cur["valid"]))
+            tol = F(float(self.s.depth_tolerance)) * dr.maximum(fw, F(1e-3) * cur["depth"])
+        lag = None
+        if alpha_lag is not None:
+            lag = dev.to_device(np.asarray(alpha_lag, np.float32).reshape(-1), F)
+        return qd.temporal(dev, w, h, cur["rgb"], cur["lum"], cur, prev,
+                           self.prev["camera"] if self.prev is not None else None, tol, lag, self.s)
+
+    def _on_device(self, a, components: int):
+        """A stage input on the device: Dr.Jit arrays as they are, host arrays uploaded (benchmarks mix the two)."""
+        if not isinstance(a, np.ndarray):
+            return a
+        dev = self.device
+        a = np.asarray(a, np.float32)
+        if components == 3:
+            return dev.to_device(a.reshape(-1, 3), dev.Vector3f)
+        if components == 2:
+            return tuple(dev.to_device(np.ascontiguousarray(a[..., k]).reshape(-1), dev.Float) for k in range(2))
+        return dev.to_device(a.reshape(-1), dev.Float)
+
+    def _variance_device(self, illum, moments, hist, guides: Guides):
+        """Stage 6 on the device: (variance Float, whether a pixel took the spatial estimate)."""
+        from suite.core.device import denoise as dden
+
+        dev = self.device
+        dr, F = dev.dr, dev.Float
+        m0, m1 = self._on_device(moments, 2)
+        hist = self._on_device(hist, 1)
+        var = dr.maximum(m1 - m0 * m0, 0.0)
+        short = hist < 4.0
+        any_short = bool(dr.any(short))
+        if any_short:
+            lum = self._device_inputs(illum, guides)["lum"]
+            var = dr.select(short, dden.spatial_variance(self._device_frame(guides), lum, float(self.s.phi_normal)),
+                            var)
+        var = var * dr.maximum(F(1.0), 4.0 / dr.maximum(hist, F(1.0)))
+        dr.eval(var)
+        return var, any_short
 
     def _atrous_device(self, color, var, guides: Guides, settings):
+        """Stage 7 on the device: (filtered colour on the host, the colour to keep as history on the device or
+        None)."""
         from suite.core.device import denoise as dden
 
-        dev, frame = self.device, self._device_frame(guides)
-        c, _, tapped = dden.atrous(frame, dev.to_device(np.asarray(color, np.float32).reshape(-1, 3), dev.Vector3f),
-                                   dev.to_device(np.asarray(var, np.float32).reshape(-1), dev.Float), settings,
-                                   self.s.feedback_tap)
-        back = lambda x: dev.to_host(x, np.float32).reshape(self.h, self.w, 3)  # noqa: E731
-        return back(c), (back(tapped) if tapped is not None else None)
+        dev = self.device
+        c, _, tapped = dden.atrous(self._device_frame(guides), self._on_device(color, 3), self._on_device(var, 1),
+                                   settings, self.s.feedback_tap)
+        return dev.to_host(c, np.float32).reshape(self.h, self.w, 3), tapped
+
+    def hist_stats(self, hist, valid) -> tuple[float, float]:
+        """(mean history length over valid pixels, largest history length) of :meth:`temporal`'s ``hist``."""
+        if isinstance(hist, np.ndarray):
+            return (float(hist[valid].mean()) if valid.any() else 0.0), (float(hist.max()) if hist.size else 0.0)
+        dr = self.device.dr
+        v = self._device_inputs_valid(valid)
+        n = int(dr.count(v)[0])
+        total = float(dr.sum(self.device.Float64(dr.select(v, hist, 0.0)))[0])
+        return (total / n if n else 0.0), float(dr.max(hist)[0])
+
+    def _device_inputs_valid(self, valid):
+        if self._frame_device is not None:
+            return self._frame_device[2]["valid"]
+        return self.device.to_device(np.asarray(valid, bool).reshape(-1), self.device.Bool)
 
     # -- end of frame ------------------------------------------------------------------------------------------
 
     def end_frame(self, surface, seeds, illum, color, moments, hist, guides: Guides) -> None:
         """Keeps what the next frame needs: shading samples and seeds (forward projection), raw luminance
-        (gradients), history colour, moments and length, and the reprojection guides."""
+        (gradients), history colour, moments and length, and the reprojection guides; after a device frame the
+        last four stay on the device."""
         h, w = self.h, self.w
+        if not isinstance(color, np.ndarray):
+            cur = self._frame_device[2]
+            self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
+                         "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
+                         "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),
+                         "camera": np.asarray(guides.camera, np.float64)}
+            self.prev_dev = {"valid": cur["valid"], "depth": cur["depth"], "normal": cur["normal"], "color": color,
+                             "moments": moments, "hist": hist}
+            self.frame += 1
+            return
+        self.prev_dev = None
         self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
                      "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
                      "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),

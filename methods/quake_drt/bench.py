@@ -21,8 +21,9 @@ running anything:
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
     is in use), with the filter taps each stage declares (its work counter, independent of the machine); beside
-    them the variance and a-trous stages on each Dr.Jit device that works here (``--device``; their kernels in
-    suite.core.device.denoise, the copies to and from the device included: ``llvm_variance_ms``, ...);
+    them the temporal, variance and a-trous stages and TAA on each Dr.Jit device that works here (``--device``;
+    methods/quake_drt/device.py and suite.core.device.denoise, the frame's copies to and from the device included,
+    the histories on the device: ``llvm_temporal_ms``, ...);
     ``ms = a * megapixels`` fitted through the origin to the total (a positive rate whenever the times are, however
     noisy two sizes are) and the exponent of ms against pixels. Seed 001 Fig. 7.8 measures the same on a GPU.
 ``lights``
@@ -264,23 +265,40 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
             return p.taa(composed, raw.g.motion, st)
 
         timed("taa", taa)
-        # Stages 6 and 7 on each Dr.Jit device beside the host filters: the same inputs, the copies included (the
-        # frame's guides go up again in every call, as once per frame in a run).
+        # Stages 5-7 and TAA on each Dr.Jit device beside the host stages, on the same inputs: per call the frame's
+        # inputs go up (as once per frame in a run) and the filtered colour and TAA output come back; the histories
+        # are on the device already (uploaded once, before the timed calls, as a run keeps them there).
         on_device = {}
-        own = den.device
+        own, own_prev_dev = den.device, den.prev_dev
         for backend in devices:
             den.device = _device_of(scene, backend)
+            den.prev_dev = None
+            dtaa = p._device_taa(den.device)
 
-            def fresh(fn):
-                den._frame_guides = None
-                return fn()
+            def chain():
+                den._frame_guides = den._frame_device = None
+                t = [time.perf_counter()]
+                c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
+                t.append(time.perf_counter())
+                v_d = den.variance(raw.illum, m_d, h_d, raw.guides)
+                t.append(time.perf_counter())
+                den.atrous(c_d, v_d, raw.guides)
+                t.append(time.perf_counter())
+                dtaa.history = taa_dev_history
+                dtaa(composed, raw.g.motion)
+                t.append(time.perf_counter())
+                return np.diff(t) * 1e3
 
+            dtaa.history = None
+            dtaa(composed, raw.g.motion)  # the TAA history of this frame, kept on the device for the timed calls
+            taa_dev_history = dtaa.history
+            chain()  # compiles; uploads the history
+            per = np.median([chain() for _ in range(max(1, repeats))], axis=0)
             short = backend.replace("mitsuba-", "")
-            on_device[f"{short}_variance_ms"], _ = _median_ms(
-                lambda: fresh(lambda: den.variance(raw.illum, moments, hist, raw.guides)), repeats)
-            on_device[f"{short}_atrous_ms"], _ = _median_ms(
-                lambda: fresh(lambda: den.atrous(color, var, raw.guides)), repeats)
-        den.device = own
+            for name, ms in zip(("temporal", "variance", "atrous", "taa"), per):
+                on_device[f"{short}_{name}_ms"] = float(ms)
+        p._taa_dev = None
+        den.device, den.prev_dev = own, own_prev_dev
         den.prev = saved
         mp = res[0] * res[1] / 1e6
         total = sum(v for k, v in times.items() if k != "taa")
@@ -464,9 +482,8 @@ def format_results(out: dict) -> str:
                          f"{stages}")
             for b in r.get("devices", []):
                 short = b.replace("mitsuba-", "")
-                lines.append(f"    on {b}: variance {row[short + '_variance_ms']:.1f} ms (host "
-                             f"{row['variance_ms']:.1f}), a-trous {row[short + '_atrous_ms']:.1f} ms "
-                             f"(host {row['atrous_ms']:.1f})")
+                lines.append(f"    on {b}: " + "  ".join(f"{k} {row[f'{short}_{k}_ms']:.1f} (host {row[k + '_ms']:.1f})"
+                                                     for k in ("temporal", "variance", "atrous", "taa")))
         if r["fit"]:
             lines.append(f"  fit: {r['fit']['ms_per_mp']:.0f} ms/MP (through the origin), "
                          f"R² {r['fit']['r2']:.4f}, exponent {r['fit']['exponent']:.2f}")

@@ -88,8 +88,9 @@ class QuakeDRT(Method):
         "antilag_mean": "mean A-SVGF anti-lag lambda over valid pixels (1 = history discarded)",
         "hist_len_mean": "mean A-SVGF history length over valid pixels",
         "hist_len_max": "largest A-SVGF history length",
-        "host_device_bytes": "bytes the A-SVGF's spatial variance and a-trous passes copied between host and device "
-                             "memory (on a Dr.Jit backend, where they run as device kernels; 0 on the host path)",
+        "host_device_bytes": "bytes the A-SVGF (stages 5-7) and TAA copied between host and device memory (on a "
+                             "Dr.Jit backend, where they run as device kernels and keep their histories there; 0 on "
+                             "the host path)",
         "audit_points": "shading points audited for culling errors",
         "audit_pairs": "(point, culled light) pairs the audit traced",
         "audit_missed": "culled pairs whose light actually reaches the point (unoccluded, facing): culling errors",

@@ -196,11 +196,13 @@ class Pipeline:
         self.w, self.h = int(width), int(height)
         self.denoiser = asvgf_mod.ASVGF(settings.asvgf, self.w, self.h)
         self.taa = TAA(settings.taa_alpha, settings.taa_clamp_sigma)
+        self._taa_dev = None  # the TAA on a tracer's Dr.Jit device (_device_taa)
         self._overlay_cache = {}
 
     def reset(self) -> None:
         self.denoiser.reset()
         self.taa.reset()
+        self._taa_dev = None
 
     # -- helpers ----------------------------------------------------------------------------------------------
 
@@ -345,11 +347,10 @@ class Pipeline:
                 den.end_frame(raw.surface, raw.seeds, raw.illum, fed_back if fed_back is not None else color,
                               moments, hist, raw.guides)
             valid = raw.guides.valid
+            hist_mean, hist_max = den.hist_stats(hist, valid)
             record.update(gradient_samples=int(len(fwd)) if fwd is not None else 0,
                           antilag_mean=float(alag[valid].mean()) if valid.any() else 0.0,
-                          hist_len_mean=float(hist[valid].mean()) if valid.any() else 0.0,
-                          hist_len_max=float(hist.max()) if hist.size else 0.0,
-                          host_device_bytes=den.copied_bytes)
+                          hist_len_mean=hist_mean, hist_len_max=hist_max)
             with stage("composition") as st:
                 denoised = raw.compose(filtered, s.illumination)
                 st.pixels = w * h
@@ -362,8 +363,27 @@ class Pipeline:
                 st.pixels = w * h
         if s.taa:
             with stage("taa") as st:
-                out = self.taa(out, raw.g.motion, st)
+                if den.device is not None:  # the history stays on the device
+                    out = den.counted_copies(lambda: self._device_taa(den.device)(out, raw.g.motion))
+                    st.count(taps=w * h * (9 + 9 + 16))
+                else:
+                    out = self.taa(out, raw.g.motion, st)
+        if s.denoiser or s.taa:
+            record["host_device_bytes"] = den.copied_bytes
         return out, denoised, raw, record
+
+    def _device_taa(self, device):
+        """The TAA whose history lives on ``device`` (methods/quake_drt/device.py), made on first use; it takes over
+        the host TAA's history."""
+        from methods.quake_drt.device import DeviceTAA
+
+        if self._taa_dev is None or self._taa_dev.dev is not device:
+            t = self.taa
+            self._taa_dev = DeviceTAA(device, t.alpha, t.clamp_sigma, t.firefly_sigma)
+            if t.history is not None:
+                h, w = t.history.shape[:2]
+                self._taa_dev.history = (device.to_device(t.history.reshape(-1, 3), device.Vector3d), w, h)
+        return self._taa_dev
 
     # -- ground truth and audit (outside the timed stages) ----------------------------------------------------
 

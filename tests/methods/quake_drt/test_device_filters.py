@@ -1,6 +1,6 @@
-"""On a Dr.Jit backend the A-SVGF's spatial variance and à-trous passes (Table 6.9 stages 6 and 7) run as the
-device kernels of suite.core.device.denoise: the frames are the host filters' frames (to rounding), and the
-copies the filters make are counted."""
+"""On a Dr.Jit backend the A-SVGF's temporal accumulation, variance and à-trous passes (Table 6.9 stages 5-7) and
+TAA run as device kernels (methods/quake_drt/device.py, suite.core.device.denoise) with their histories on the
+device: the frames are the host stages' frames (to rounding), and the copies they make are counted."""
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,10 +13,10 @@ from suite.harness import registry, runner
 DRJIT = backend_params("mitsuba-llvm", "mitsuba-cuda")
 
 
-def _frames(scene, backend, on_device: bool, frames=4, resolution=(48, 27)):
+def _frames(scene, backend, on_device: bool, frames=4, resolution=(48, 27), **params):
     cfg = runner.make_config("quake_drt", scene=scene.name, resolution=f"{resolution[0]}x{resolution[1]}",
                              frames=frames, clock="work", reference_spp=0, quality_every=-1,
-                             set_values={"gt_frames": 0, "cull_audit_points": 0})
+                             set_values={"gt_frames": 0, "cull_audit_points": 0, **params})
     cls = registry.get("quake_drt").load()
     tracer = make(backend, scene)
     prepared = cls(cfg["params"]).prepare(scene, tracer)
@@ -26,15 +26,36 @@ def _frames(scene, backend, on_device: bool, frames=4, resolution=(48, 27)):
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-def test01_device_filters_give_the_host_filters_frames(backend):
+@pytest.mark.parametrize("params", [{}, {"asvgf_history_cap": 2}], ids=["defaults", "history_cap_2"])
+def test01_device_filters_give_the_host_filters_frames(backend, params):
     scene = load("gallery")
-    host, host_images = _frames(scene, backend, False)
-    dev, dev_images = _frames(scene, backend, True)
+    host, host_images = _frames(scene, backend, False, **params)
+    dev, dev_images = _frames(scene, backend, True, **params)
     assert (host["info_host_device_bytes"] == 0).all()
     w, h = 48, 27
     # per frame at least the colour and variance up and the filtered colour down
     assert (dev["info_host_device_bytes"] >= w * h * (12 + 4 + 12)).all()
     assert list(host["info_hist_len_max"]) == list(dev["info_hist_len_max"])
+    assert host["info_hist_len_max"].max() == min(4, params.get("asvgf_history_cap", 256))
     for a, b in zip(host_images, dev_images):
         assert np.isfinite(b).all()
         np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test02_device_taa_gives_the_host_taa_with_its_history_on_the_device(drjit_device, backend):
+    from methods.quake_drt.device import DeviceTAA
+    from methods.quake_drt.taa import TAA
+
+    rng = np.random.default_rng(5)
+    h, w = 23, 31
+    host, dev = TAA(0.1, 1.0), DeviceTAA(drjit_device(backend), 0.1, 1.0, 3.0)
+    for frame in range(4):
+        c = rng.gamma(1.0, 1.0, (h, w, 3)).astype(np.float32)
+        c[4, 7] = 50.0                                          # a firefly
+        motion = rng.normal(0.0, 3.0, (h, w, 2)).astype(np.float32)
+        motion[:3] = 40.0                                       # history outside the image
+        a, b = host(c, motion), dev(c, motion)
+        assert b.dtype == np.float32 and b.shape == a.shape
+        np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-7)
+    assert not np.allclose(a, c)                                # the history was blended in

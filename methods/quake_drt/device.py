@@ -1,0 +1,189 @@
+"""Seed 001's per-pixel A-SVGF and TAA passes as Dr.Jit kernels on the run's Mitsuba variant (``llvm_ad_rgb`` on the
+CPU, ``cuda_ad_rgb`` on the GPU): the temporal accumulation's reprojection (Table 6.9 stage 5) and TAA (§6.12), whose
+histories then stay on the device from frame to frame. The variance and à-trous stages are the core's device filters
+(suite.core.device.denoise).
+
+Each kernel is its numba twin (:func:`methods.quake_drt.asvgf._reproject`, :func:`methods.quake_drt.taa._taa_pass`)
+operation for operation, in the same precision; the tests compare them (tests/methods/quake_drt/test_device_filters.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _pixels(dev, w: int, h: int):
+    i = dev.arange(w * h)
+    return dev.Int32(i // w), dev.Int32(i % w)
+
+
+def _index(dev, yy, xx, w: int):
+    return dev.UInt32(yy * w + xx)
+
+
+def _catmull_rom(f):
+    """Catmull-Rom weights of the taps at -1, 0, 1, 2 for the fractional offset ``f`` (taa._catmull_rom)."""
+    f2, f3 = f * f, f * f * f
+    return (-0.5 * f3 + f2 - 0.5 * f, 1.5 * f3 - 2.5 * f2 + 1.0, -1.5 * f3 + 2.0 * f2 + 0.5 * f, 0.5 * f3 - 0.5 * f2)
+
+
+class DeviceTAA:
+    """:class:`methods.quake_drt.taa.TAA` with its history on the device: ``__call__`` takes and returns host images
+    (the composed frame goes up, the output comes back: counted copies)."""
+
+    def __init__(self, dev, alpha: float, clamp_sigma: float, firefly_sigma: float):
+        self.dev = dev
+        self.alpha, self.clamp_sigma, self.firefly_sigma = float(alpha), float(clamp_sigma), float(firefly_sigma)
+        self.history = None  # (Vector3d, width, height)
+
+    def __call__(self, color: np.ndarray, motion: np.ndarray) -> np.ndarray:
+        dev = self.dev
+        h, w = color.shape[:2]
+        c = dev.to_device(np.asarray(color, np.float64).reshape(-1, 3), dev.Vector3d)
+        mv = np.asarray(motion, np.float64).reshape(-1, 2)
+        m = (dev.to_device(np.ascontiguousarray(mv[:, 0]), dev.Float64),
+             dev.to_device(np.ascontiguousarray(mv[:, 1]), dev.Float64))
+        has = self.history is not None and self.history[1:] == (w, h)
+        out = taa_pass(dev, c, self.history[0] if has else c, m, w, h, has, self.alpha, self.clamp_sigma,
+                       self.firefly_sigma)
+        self.history = (out, w, h)
+        return dev.to_host(out, np.float32).reshape(h, w, 3)
+
+
+def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: float, clamp_sigma: float,
+             firefly_sigma: float):
+    """Steps 1-5 of :mod:`methods.quake_drt.taa` for every pixel: Vector3d colour and history, motion in pixels as
+    two Float64 arrays (x, y); returns the output (Vector3d), evaluated."""
+    dr, F64, I32 = dev.dr, dev.Float64, dev.Int32
+    V3 = dev.Vector3d
+    y, x = _pixels(dev, w, h)
+    m1, m2 = dr.zeros(V3, w * h), dr.zeros(V3, w * h)
+    for dy in (-1, 0, 1):
+        yy = dr.clip(y + dy, 0, h - 1)  # the edge pixel repeats beyond the border
+        for dx in (-1, 0, 1):
+            if dx == 0 and dy == 0:
+                continue
+            q = dr.gather(V3, c, _index(dev, yy, dr.clip(x + dx, 0, w - 1), w))
+            m1 = V3(m1.x + q.x, m1.y + q.y, m1.z + q.z)
+            m2 = V3(m2.x + q.x * q.x, m2.y + q.y * q.y, m2.z + q.z * q.z)
+    m1, m2 = m1 / 8.0, m2 / 8.0
+    fire = dr.full(dev.Bool, False, w * h)
+    for k in range(3):
+        sig = dr.sqrt(dr.maximum(m2[k] - m1[k] * m1[k], 0.0))
+        fire = fire | (c[k] < m1[k] - firefly_sigma * sig) | (c[k] > m1[k] + firefly_sigma * sig)
+    centre = dr.select(fire, m1, c)
+    if not has_history:
+        dr.eval(centre)
+        return centre
+    bx, by = motion
+    best = bx * bx + by * by
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            yy, xx = y + dy, x + dx
+            inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+            j = _index(dev, dr.select(inside, yy, 0), dr.select(inside, xx, 0), w)
+            qx, qy = dr.gather(F64, motion[0], j, inside), dr.gather(F64, motion[1], j, inside)
+            ln = qx * qx + qy * qy
+            longer = inside & (ln > best)
+            best, bx, by = dr.select(longer, ln, best), dr.select(longer, qx, bx), dr.select(longer, qy, by)
+    px, py = F64(x) + 0.5 + bx, F64(y) + 0.5 + by
+    usable = (px >= 1.0) & (px < w - 1.0) & (py >= 1.0) & (py < h - 1.0)
+    tx, ty = px - 0.5, py - 0.5
+    x0, y0 = dr.floor(tx), dr.floor(ty)
+    wx, wy = _catmull_rom(tx - x0), _catmull_rom(ty - y0)
+    xi0, yi0 = I32(dr.select(usable, x0, 0.0)), I32(dr.select(usable, y0, 0.0))
+    prev = dr.zeros(V3, w * h)
+    for j in range(4):
+        yi = dr.clip(yi0 + (j - 1), 0, h - 1)
+        for i in range(4):
+            xi = dr.clip(xi0 + (i - 1), 0, w - 1)
+            wgt = wx[i] * wy[j]
+            q = dr.gather(V3, hist, _index(dev, yi, xi, w), usable)
+            prev = V3(prev.x + q.x * wgt, prev.y + q.y * wgt, prev.z + q.z * wgt)
+    out = []
+    for k in range(3):
+        mean = (m1[k] * 8.0 + centre[k]) / 9.0
+        sq = (m2[k] * 8.0 + centre[k] * centre[k]) / 9.0
+        sd = dr.sqrt(dr.maximum(sq - mean * mean, 0.0))
+        p = dr.select(dr.isfinite(prev[k]), prev[k], 0.0)
+        p = dr.minimum(dr.maximum(p, mean - clamp_sigma * sd), mean + clamp_sigma * sd)
+        out.append(p + alpha * (centre[k] - p))
+    res = dr.select(usable, V3(*out), centre)
+    dr.eval(res)
+    return res
+
+
+def upload_reprojection_guides(dev, guides) -> dict:
+    """A frame's reprojection guides on the device (counted copies): validity, float64 points, float32 depth and
+    normals, float32 motion (x, y)."""
+    motion = np.asarray(guides.motion, np.float32).reshape(-1, 2)
+    return {"valid": dev.to_device(np.asarray(guides.valid, bool).reshape(-1), dev.Bool),
+            "point": dev.to_device(np.asarray(guides.point, np.float64).reshape(-1, 3), dev.Point3d),
+            "depth": dev.to_device(np.asarray(guides.depth, np.float32).reshape(-1), dev.Float),
+            "normal": dev.to_device(np.asarray(guides.normal, np.float32).reshape(-1, 3), dev.Vector3f),
+            "motion": (dev.to_device(np.ascontiguousarray(motion[:, 0]), dev.Float),
+                       dev.to_device(np.ascontiguousarray(motion[:, 1]), dev.Float))}
+
+
+def reproject(dev, w: int, h: int, cur: dict, tol, prev: dict, cam_prev):
+    """:func:`methods.quake_drt.asvgf._reproject` for every pixel: the previous frame's colour, moments and history
+    length fetched bilinearly at each pixel's reprojected position, keeping only taps whose depth and normal are
+    consistent. ``cur``/``prev``: guides as :func:`upload_reprojection_guides` makes them, ``prev`` with its
+    ``color`` (Vector3f), ``moments`` (two Float) and ``hist`` (Float); returns (colour Vector3f, moments, hist,
+    reprojected Bool)."""
+    dr, F, F64, I32 = dev.dr, dev.Float, dev.Float64, dev.Int32
+    y, x = _pixels(dev, w, h)
+    valid = cur["valid"]
+    px = F64(x) + 0.5 + F64(cur["motion"][0]) - 0.5
+    py = F64(y) + 0.5 + F64(cur["motion"][1]) - 0.5
+    lx, ly = dr.floor(px), dr.floor(py)
+    fx, fy = px - lx, py - ly
+    cam = [dev.opaque(F64, float(v)) for v in np.asarray(cam_prev, np.float64)]
+    p = cur["point"]
+    ex, ey, ez = p.x - cam[0], p.y - cam[1], p.z - cam[2]
+    expect = dr.sqrt(ex * ex + ey * ey + ez * ez)
+    n = cur["normal"]
+    c = [dr.zeros(F64, w * h) for _ in range(6)]  # colour, moments, history length
+    ws = dr.zeros(F64, w * h)
+    for k in range(4):
+        ox, oy = k % 2, k // 2
+        wt = (fx if ox else 1.0 - fx) * (fy if oy else 1.0 - fy)
+        tx, ty = I32(dr.select(valid, lx, 0.0)) + ox, I32(dr.select(valid, ly, 0.0)) + oy
+        inside = valid & (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
+        j = _index(dev, dr.select(inside, ty, 0), dr.select(inside, tx, 0), w)
+        ok = inside & dr.gather(dev.Bool, prev["valid"], j, inside)
+        ok &= ~(dr.abs(F64(dr.gather(F, prev["depth"], j, ok)) - expect) > F64(tol))
+        pn = dr.gather(dev.Vector3f, prev["normal"], j, ok)
+        ok &= ~(((pn.x * n.x + pn.y * n.y) + pn.z * n.z) <= 0.5)
+        pc = dr.gather(dev.Vector3f, prev["color"], j, ok)
+        vals = (pc.x, pc.y, pc.z, dr.gather(F, prev["moments"][0], j, ok), dr.gather(F, prev["moments"][1], j, ok),
+                dr.gather(F, prev["hist"], j, ok))
+        c = [dr.select(ok, a + F64(v) * wt, a) for a, v in zip(c, vals)]
+        ws = dr.select(ok, ws + wt, ws)
+    reprojected = valid & (ws > 1e-3)
+    zero = F(0.0)
+    out = [dr.select(reprojected, F(a / ws), zero) for a in c]
+    return dev.Vector3f(out[0], out[1], out[2]), (out[3], out[4]), out[5], reprojected
+
+
+def temporal(dev, w: int, h: int, cur_rgb, lum, cur: dict, prev: dict | None, cam_prev, tol, alpha_lag, s):
+    """:meth:`methods.quake_drt.asvgf.ASVGF.temporal` on the device: (colour Vector3f, moments (two Float), history
+    length Float, reprojected Bool), evaluated. ``cur_rgb`` Vector3f, ``lum`` its luminance (Float), ``alpha_lag``
+    Float or None, ``s`` the ASVGFSettings."""
+    dr, F = dev.dr, dev.Float
+    mom = (lum, lum * lum)
+    hist = dr.select(cur["valid"], F(1.0), F(0.0))
+    color = cur_rgb
+    reprojected = dr.full(dev.Bool, False, w * h)
+    if prev is not None:
+        prev_c, prev_m, prev_h, reprojected = reproject(dev, w, h, cur, tol, prev, cam_prev)
+        hist_r = dr.minimum(prev_h + 1.0, F(float(s.history_cap)))
+        a_c = dr.maximum(F(float(s.alpha_color)), 1.0 / hist_r)
+        a_m = dr.maximum(F(float(s.alpha_moments)), 1.0 / hist_r)
+        if alpha_lag is not None and s.antilag:
+            a_c = a_c + (1.0 - a_c) * alpha_lag
+            a_m = a_m + (1.0 - a_m) * alpha_lag
+        color = dr.select(reprojected, prev_c + (cur_rgb - prev_c) * a_c, cur_rgb)
+        mom = tuple(dr.select(reprojected, pm + (m - pm) * a_m, m) for pm, m in zip(prev_m, mom))
+        hist = dr.select(reprojected, hist_r, hist)
+    dr.eval(color, *mom, hist, reprojected)
+    return color, mom, hist, reprojected
