@@ -85,13 +85,25 @@ def _one_pass(scene, tracer, prep, n_paths: int, seed: int = 0, clamp: float = 0
 
 def _raw_rate(recorder, repeats: int) -> float | None:
     """Rays/s of the backend's raw entry points on the rays ``recorder`` (a RecordingTracer) kept; None without
-    them."""
+    them. On a Dr.Jit device (where the pass itself runs on the device, methods/rail/device.py) the rays are copied
+    to the device once and the raw rate is that of rays in its memory (``Device.raw_occluded``)."""
     if not hasattr(recorder.tracer, "raw_occluded") or not recorder.log:
         return None
+    dev = getattr(recorder.tracer, "device", None)
+    if dev is not None:
+        up = lambda a, t: dev.to_device(np.ascontiguousarray(a), t)  # noqa: E731
+        rays = [dev.raw_ray(up(o, dev.Point3f), up(d, dev.Vector3f), up(length, dev.Float))
+                for kind, o, d, length in recorder.log if kind == "o"]
+
+        def replay():
+            for ray in rays:
+                dev.raw_occluded(ray)
+    else:
+        replay = recorder.replay
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        recorder.replay()
+        replay()
         times.append(time.perf_counter() - t0)
     return recorder.rays / float(np.median(times))
 

@@ -142,3 +142,61 @@ def joint_bilateral_upsample(dev, lo_img, lo_valid, lo_normal, lo_depth, lo_size
     out = dev.Vector3f(dr.select(valid, out, dev.Vector3d(0.0, 0.0, 0.0)))
     dr.eval(out)
     return out
+
+
+def shade_points(dev, q_origin, qn, v_pos, v_normal, intensity, clamp_m: float, per: int):
+    """§3.2's point-cloud shading on the device (:func:`methods.rail.lighting.shade_points`): one lane per point, a
+    loop over the VPLs in order, each pair's shadow ray traced where it is made (device-resident rays). The float64
+    operations and the order of the sums are the host pass's (per point the VPLs in order, added to E in batches of
+    ``per`` VPLs), and the rays are its rays, so E has its bits on ``llvm_ad_rgb``. Inputs are the host pass's
+    (:func:`methods.rail.lighting._shading_inputs`); returns (E (N, 3) float64, shadow rays traced)."""
+    from suite.core.trace.base import MAX_RAY_LENGTH
+
+    from .lighting import SHADOW_TMAX_SCALE
+
+    dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
+    V3 = dev.Vector3d
+    up3 = lambda a: dev.to_device(np.ascontiguousarray(a, np.float64).reshape(-1, 3), V3)  # noqa: E731
+    q, n = up3(q_origin), up3(qn)
+    vp, vn, inten = up3(v_pos), up3(v_normal), up3(intensity)
+    n_pts, n_vpl = len(q_origin), len(v_pos)
+    o_local = dev.local_f32(q)
+    clamp2 = dev.opaque(F64, float(clamp_m) ** 2)
+    per_op, end_op = dev.opaque(U, int(per)), dev.opaque(U, int(n_vpl))
+    alpha = dev.tracer._alpha is not None
+    zeros3 = dr.zeros(V3, n_pts)
+
+    def body(j, sums, E, count, extra):
+        p = dr.gather(V3, vp, j)
+        m = dr.gather(V3, vn, j)
+        tx, ty, tz = p.x - q.x, p.y - q.y, p.z - q.z
+        d2 = (tx * tx + tz * tz) + ty * ty
+        dist = dr.sqrt(dr.maximum(d2, 1e-300))
+        wx, wy, wz = tx / dist, ty / dist, tz / dist
+        cos_q = (wx * n.x + wz * n.z) + wy * n.y
+        cos_v = -((wx * m.x + wz * m.z) + wy * m.y)
+        front = (cos_q > 0.0) & (cos_v > 0.0)
+        length = dr.clip(F(dist * SHADOW_TMAX_SCALE), 0.0, MAX_RAY_LENGTH)
+        blocked, traced = dev.occluded_rays(o_local, dev.Vector3f(F(wx), F(wy), F(wz)), length, front)
+        lit = front & ~blocked
+        g = cos_q * cos_v / dr.maximum(d2, clamp2)
+        i = dr.gather(V3, inten, j)
+        sums = V3(sums.x + dr.select(lit, g * i.x, 0.0), sums.y + dr.select(lit, g * i.y, 0.0),
+                  sums.z + dr.select(lit, g * i.z, 0.0))
+        nxt = j + 1
+        batch_end = (nxt % per_op == 0) | (nxt == end_op)     # a batch's sums go to E (the host pass's order)
+        E = dr.select(batch_end, E + sums, E)
+        sums = dr.select(batch_end, zeros3, sums)
+        count = count + dr.select(front, U(1), U(0))
+        if traced is not None:
+            extra = extra + traced
+        return nxt, sums, E, count, extra
+
+    _, _, E, count, extra = dr.while_loop((dr.zeros(U, n_pts), zeros3, zeros3, dr.zeros(U, n_pts),
+                                           dr.zeros(U, n_pts)), lambda j, *_: j < end_op, body)
+    dr.eval(E, count, extra)
+    rays = dev.sum_u32(count, n_vpl)
+    dev.tracer.counters["rays_occluded"] += rays
+    if alpha:
+        dev.tracer.counters["rays_intersect"] += dev.sum_u32(extra)
+    return dev.to_host(E, np.float64), rays

@@ -182,7 +182,8 @@ def shade_points(points: np.ndarray, normals: np.ndarray, vpls: PathVertices, tr
     rays, a worker makes the next step's (one compiled pass, :func:`_pair_rays`) and adds up a traced one's
     (:func:`_accumulate`), so the pass costs little more than its queries. The result has the bits of
     :func:`shade_points_reference` (the batches' whole-array numpy expressions): the same rays, and per point the
-    same contributions added in the same order.
+    same contributions added in the same order. On a tracer with a Dr.Jit device (Mitsuba llvm/cuda) the pass is one
+    device kernel instead (:func:`methods.rail.device.shade_points`: the same rays and sums).
     """
     import threading
     from functools import partial
@@ -195,6 +196,13 @@ def shade_points(points: np.ndarray, normals: np.ndarray, vpls: PathVertices, tr
     q_origin, qn, v_pos, intensity = inputs
     n_pts, n_vpl = len(q_origin), len(v_pos)
     v_normal = np.ascontiguousarray(vpls.normal, np.float64)
+    device = getattr(tracer, "device", None)
+    if device is not None:  # a Mitsuba llvm/cuda tracer: the pass as one device kernel, its rays never leave it
+        from .device import shade_points as shade_on_device
+
+        E, counters["rays"] = shade_on_device(device, q_origin, qn, v_pos, v_normal, intensity, clamp_m,
+                                              max(1, int(batch) // n_pts))
+        return E, counters
     # Steps of whole VPLs (about STEP_PAIRS pairs) within the reference's batches: per point, the contributions still
     # come in VPL order, so summing the steps of a batch one after the other gives the batch's sums.
     per = max(1, int(batch) // n_pts)

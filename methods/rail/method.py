@@ -22,7 +22,8 @@ Client (one instance each):
             function F_a·AO (§3.4-3.5, AO traced) where eq. 2 is 0/0 or on dynamic geometry.
   compose   direct + albedo · E / π.
 On a tracer with a device path (Mitsuba llvm/cuda) the client frame stays on the device from the G-buffer to the
-composed image (device.py: the same values as the host path); Embree runs the host path.
+composed image, and the server's shading pass is one device kernel (device.py: the same values as the host path);
+Embree runs the host path.
 The client asks for the next update when the previous response has arrived (request/response, §4.1, §5.3).
 """
 from __future__ import annotations

@@ -126,3 +126,26 @@ def test03_device_idw_equals_the_host_loop_inside_outside_and_on_the_edges_of_th
     exact = mu == 1.0 and backend == "mitsuba-llvm"
     np.testing.assert_allclose(w_d[:-1], w_h, rtol=0 if exact else 1e-12, atol=0)
     np.testing.assert_allclose(phi_d[:-1], phi_h, rtol=0 if exact else 1e-6, atol=0)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name", ["living_room", "gallery"])      # gallery: shadow rays through its grate
+def test04_device_point_cloud_shading_gives_the_host_pass(backend, scene_name):
+    from methods.rail.lighting import shade_points, trace_light_paths
+
+    scene = _scene(scene_name)
+    tracer = make(backend, scene)
+    prep = registry.get("rail").load()({**registry.get("rail").params(), **SMALL}).prepare(scene, tracer)
+    pts = prep["points"]
+    vpls = trace_light_paths(scene, tracer, 0.0, prep["light_positions"], prep["light_intensities"], 16, 3,
+                             np.random.default_rng(0), scene.area_light_triangles(0.0))
+    host_E, host_c = shade_points(pts.position, pts.normal, vpls, RecordingTracer(tracer), 0.5 * pts.spacing_m,
+                                  batch=3 * len(pts))             # batches of 3 VPLs: E takes their sums in turn
+    rays0 = tracer.counters["rays_occluded"]
+    dev_E, dev_c = shade_points(pts.position, pts.normal, vpls, tracer, 0.5 * pts.spacing_m, batch=3 * len(pts))
+    assert dev_c == host_c and tracer.counters["rays_occluded"] - rays0 == dev_c["rays"] > 0
+    assert (host_E > 0).any()
+    if backend == "mitsuba-llvm":
+        assert np.array_equal(dev_E, host_E)                        # the same rays, the same sums in the same order
+    else:
+        np.testing.assert_allclose(dev_E, host_E, rtol=1e-9, atol=1e-12)
