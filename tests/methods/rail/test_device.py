@@ -83,11 +83,24 @@ def test01_the_device_frames_are_the_host_frames(backend, scene_name, params, ex
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-def test02_the_frame_stays_on_the_device_until_the_image_is_read_back(backend):
+def test02_the_frame_stays_on_the_device_until_the_image_is_read_back(backend, monkeypatch):
+    from methods.rail.method import Rail
+
     w, h, frames = 40, 24, 3
-    df, _, copied = _simulate("living_room", backend, True, frames=frames, resolution=(w, h))
-    assert (df["info_fallback_pixels"] == 0).all()
-    assert copied == frames * w * h * 3 * 4                     # one float32 RGB image per frame, nothing else
+    copied = []                  # bytes each client frame copied to the host (the server shades on the device too)
+    client_frame = Rail.client_frame
+
+    def counted(self, ctx, update):
+        c = ctx.tracer.device.counters
+        before = c["bytes_to_host"]
+        out = client_frame(self, ctx, update)
+        copied.append(c["bytes_to_host"] - before)
+        return out
+
+    monkeypatch.setattr(Rail, "client_frame", counted)
+    df, _, _ = _simulate("living_room", backend, True, frames=frames, resolution=(w, h))
+    assert (df["info_fallback_pixels"] == 0).all() and df["info_cache_ready"].any()
+    assert copied == [w * h * 3 * 4] * frames                   # one float32 RGB image per frame, nothing else
 
 
 @pytest.mark.parametrize("backend", DRJIT)
