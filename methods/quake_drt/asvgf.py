@@ -38,10 +38,12 @@ What is filtered is demodulated illumination (radiance / albedo), and the result
 in the composition (§6.11), as q2vkpt does. The reprojection is a numba kernel parallel over image rows; the spatial
 variance and the spatial a-trous are the suite's shared filters (:func:`suite.core.denoise.spatial_variance`,
 :func:`suite.core.denoise.atrous`), and they and the rest are vectorised numpy. On a tracer with a Dr.Jit device
-(Mitsuba llvm/cuda) stages 5-7 run as device kernels (the reprojection and accumulation of
-:mod:`methods.quake_drt.device`, the filters of :mod:`suite.core.device.denoise`; the same values to rounding) and
-the colour, moments and history length stay on the device between frames; the frame's inputs go up once and the
-filtered colour comes back (counted copies, ``copied_bytes``). Stages 1-4 stay on the host; the work counters count one tap per
+(Mitsuba llvm/cuda) stages 3-7 run as device kernels (the gradients, reprojection and accumulation of
+:mod:`methods.quake_drt.device`, the filters of :mod:`suite.core.device.denoise`; the same values to rounding: the
+gradient a-trous's float32 ``exp`` is Dr.Jit's, not numpy's) and the colour, moments and history length stay on
+the device between frames; the frame's inputs go up once and the filtered colour comes back (counted copies,
+``copied_bytes``). Stages 1-2 (the seeds and the forward projection, which reads the scene's triangles) stay on the
+host; the work counters count one tap per
 pixel and kernel tap and pass.
 """
 from __future__ import annotations
@@ -167,7 +169,8 @@ class ASVGF:
         self.prev = None  # dict of the previous frame's buffers
         self.device = None  # a suite.core.device.Device: stages 5-7 run there (set per frame by the pipeline)
         self._frame_guides = None  # (Guides, their DeviceFrame): the filter guides uploaded once per frame
-        self._frame_device = None  # (Guides, illum, dict): the frame's reprojection guides and inputs on the device
+        self._frame_device = None  # (Guides, dict): the frame's reprojection guides on the device
+        self._frame_colour = None  # (illum, dict): the frame's colour and luminance on the device
         self.prev_dev = None  # the history on the device (colour, moments, length, guides) after a device frame
         self.copied_bytes = 0  # bytes stages 5-7 copied between host and device memory (device path)
 
@@ -246,8 +249,19 @@ class ASVGF:
     # -- 3. gradient image ----------------------------------------------------------------------------------
 
     def gradient(self, illum: np.ndarray, fwd: GradientSamples, st=None) -> np.ndarray:
-        """(ch, cw, 4): delta, max, cell luminance mean and standard deviation (one tap per pixel)."""
+        """(ch, cw, 4): delta, max, cell luminance mean and standard deviation (one tap per pixel); on a device the
+        four as Float arrays of the cell grid."""
         w, h, cw, ch = self.w, self.h, self.cw, self.ch
+        if self.device is not None:
+            from methods.quake_drt import device as qd
+
+            has = fwd is not None and len(fwd) and self.prev is not None
+            out = self.counted_copies(lambda: qd.gradient(
+                self.device, w, h, self._device_colour(illum)["lum"], fwd.cur if has else np.zeros(0, np.int64),
+                self.prev["lum"][fwd.prev] if has else np.zeros(0, np.float32)))
+            if st is not None:
+                st.count(taps=w * h)
+            return out
         lum = luminance(illum.reshape(h, w, 3))
         pad = np.zeros((ch * GRAD_DWN, cw * GRAD_DWN), np.float32)
         pad[:h, :w] = lum
@@ -269,7 +283,17 @@ class ASVGF:
     # -- 4. gradient a-trous ----------------------------------------------------------------------------------
 
     def gradient_atrous(self, grad: np.ndarray, st=None) -> np.ndarray:
-        """(ch, cw) lambda in [0, 1]: how much of the history is invalid."""
+        """(ch, cw) lambda in [0, 1]: how much of the history is invalid (a Float of the cell grid on a device)."""
+        if self.device is not None:
+            from methods.quake_drt import device as qd
+
+            if isinstance(grad, np.ndarray):  # benchmarks hand in the host's gradient image
+                grad = tuple(self.device.to_device(np.ascontiguousarray(grad[..., k]).reshape(-1), self.device.Float)
+                             for k in range(4))
+            lam = qd.gradient_atrous(self.device, grad, self.w, self.h, self.s)
+            if st is not None:
+                st.count(taps=self.cw * self.ch * 9 * 2 * self.s.gradient_iterations)
+            return lam
         val = grad[..., :2].copy()
         var = (grad[..., 3] ** 2).astype(np.float32)
         lum = np.minimum(grad[..., 2], 8.0)  # the thesis code's min(lum, 8)
@@ -298,7 +322,11 @@ class ASVGF:
         return np.where(mx > 1e-6, np.minimum(delta / np.maximum(mx, 1e-12), 1.0), 0.0).astype(np.float32)
 
     def antilag(self, lam: np.ndarray) -> np.ndarray:
-        """(H, W): the largest lambda of the 3x3 gradient cells around each pixel's cell."""
+        """(H, W): the largest lambda of the 3x3 gradient cells around each pixel's cell (a Float on a device)."""
+        if self.device is not None and not isinstance(lam, np.ndarray):
+            from methods.quake_drt import device as qd
+
+            return qd.antilag(self.device, lam, self.w, self.h)
         m = lam.copy()
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
@@ -391,18 +419,23 @@ class ASVGF:
 
     # -- the device path (stages 5-7 as Dr.Jit kernels; methods/quake_drt/device.py, suite.core.device.denoise) ----
 
+    def _device_colour(self, illum) -> dict:
+        """The frame's colour and luminance on the device (uploaded once per frame)."""
+        if self._frame_colour is None or self._frame_colour[0] is not illum:
+            dev = self.device
+            cur = np.asarray(illum, np.float32).reshape(self.h, self.w, 3)
+            self._frame_colour = (illum, {"rgb": dev.to_device(cur.reshape(-1, 3), dev.Vector3f),
+                                          # numpy's rounding of the product (a matrix product on the host)
+                                          "lum": dev.to_device(luminance(cur).reshape(-1), dev.Float)})
+        return self._frame_colour[1]
+
     def _device_inputs(self, illum, guides: Guides) -> dict:
         """The frame's reprojection guides, colour and luminance on the device (uploaded once per frame)."""
         from methods.quake_drt import device as qd
 
-        if self._frame_device is None or self._frame_device[0] is not guides or self._frame_device[1] is not illum:
-            dev = self.device
-            cur = np.asarray(illum, np.float32).reshape(self.h, self.w, 3)
-            inputs = qd.upload_reprojection_guides(dev, guides)
-            inputs["rgb"] = dev.to_device(cur.reshape(-1, 3), dev.Vector3f)
-            inputs["lum"] = dev.to_device(luminance(cur).reshape(-1), dev.Float)  # numpy's rounding of the product
-            self._frame_device = (guides, illum, inputs)
-        return self._frame_device[2]
+        if self._frame_device is None or self._frame_device[0] is not guides:
+            self._frame_device = (guides, qd.upload_reprojection_guides(self.device, guides))
+        return {**self._frame_device[1], **self._device_colour(illum)}
 
     def _previous_on_device(self) -> dict | None:
         """The history as the device kernels read it (uploaded from the host when the last frame ran there)."""
@@ -432,8 +465,8 @@ class ASVGF:
             fw = dden.depth_fwidth(SimpleNamespace(device=dev, width=w, height=h, depth=cur["depth"],
                                                    valid=cur["valid"]))
             tol = F(float(self.s.depth_tolerance)) * dr.maximum(fw, F(1e-3) * cur["depth"])
-        lag = None
-        if alpha_lag is not None:
+        lag = alpha_lag
+        if isinstance(alpha_lag, np.ndarray):
             lag = dev.to_device(np.asarray(alpha_lag, np.float32).reshape(-1), F)
         return qd.temporal(dev, w, h, cur["rgb"], cur["lum"], cur, prev,
                            self.prev["camera"] if self.prev is not None else None, tol, lag, self.s)
@@ -479,19 +512,20 @@ class ASVGF:
                                    settings, self.s.feedback_tap)
         return dev.to_host(c, np.float32).reshape(self.h, self.w, 3), tapped
 
-    def hist_stats(self, hist, valid) -> tuple[float, float]:
-        """(mean history length over valid pixels, largest history length) of :meth:`temporal`'s ``hist``."""
-        if isinstance(hist, np.ndarray):
-            return (float(hist[valid].mean()) if valid.any() else 0.0), (float(hist.max()) if hist.size else 0.0)
+    def stats(self, a, valid) -> tuple[float, float]:
+        """(mean over the valid pixels, largest value) of a per-pixel stage output (host or device), e.g.
+        :meth:`temporal`'s history length or :meth:`antilag`'s lambda."""
+        if isinstance(a, np.ndarray):
+            return (float(a[valid].mean()) if valid.any() else 0.0), (float(a.max()) if a.size else 0.0)
         dr = self.device.dr
         v = self._device_inputs_valid(valid)
         n = int(dr.count(v)[0])
-        total = float(dr.sum(self.device.Float64(dr.select(v, hist, 0.0)))[0])
-        return (total / n if n else 0.0), float(dr.max(hist)[0])
+        total = float(dr.sum(self.device.Float64(dr.select(v, a, 0.0)))[0])
+        return (total / n if n else 0.0), float(dr.max(a)[0])
 
     def _device_inputs_valid(self, valid):
         if self._frame_device is not None:
-            return self._frame_device[2]["valid"]
+            return self._frame_device[1]["valid"]
         return self.device.to_device(np.asarray(valid, bool).reshape(-1), self.device.Bool)
 
     # -- end of frame ------------------------------------------------------------------------------------------
@@ -502,7 +536,7 @@ class ASVGF:
         last four stay on the device."""
         h, w = self.h, self.w
         if not isinstance(color, np.ndarray):
-            cur = self._frame_device[2]
+            cur = self._frame_device[1]
             self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
                          "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
                          "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),

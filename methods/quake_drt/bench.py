@@ -276,7 +276,7 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
             dtaa = p._device_taa(den.device)
 
             def chain():
-                den._frame_guides = den._frame_device = None
+                den._frame_guides = den._frame_device = den._frame_colour = None
                 t = [time.perf_counter()]
                 c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
                 t.append(time.perf_counter())

@@ -1,10 +1,12 @@
 """Seed 001's per-pixel A-SVGF and TAA passes as Dr.Jit kernels on the run's Mitsuba variant (``llvm_ad_rgb`` on the
-CPU, ``cuda_ad_rgb`` on the GPU): the temporal accumulation's reprojection (Table 6.9 stage 5) and TAA (§6.12), whose
-histories then stay on the device from frame to frame. The variance and à-trous stages are the core's device filters
-(suite.core.device.denoise).
+CPU, ``cuda_ad_rgb`` on the GPU): the gradient image, gradient à-trous and anti-lag (Table 6.9 stages 3-4), the
+temporal accumulation's reprojection (stage 5) and TAA (§6.12), whose histories then stay on the device from frame
+to frame. The variance and à-trous stages are the core's device filters (suite.core.device.denoise).
 
-Each kernel is its numba twin (:func:`methods.quake_drt.asvgf._reproject`, :func:`methods.quake_drt.taa._taa_pass`)
-operation for operation, in the same precision; the tests compare them (tests/methods/quake_drt/test_device_filters.py).
+Each kernel is its host twin (:mod:`methods.quake_drt.asvgf`'s numpy stages and numba ``_reproject``,
+:func:`methods.quake_drt.taa._taa_pass`) operation for operation, in the same precision; the float32 ``exp`` of the
+gradient à-trous is Dr.Jit's, not numpy's, so the frames agree to rounding. The tests compare them
+(tests/methods/quake_drt/test_device_filters.py).
 """
 from __future__ import annotations
 
@@ -187,3 +189,101 @@ def temporal(dev, w: int, h: int, cur_rgb, lum, cur: dict, prev: dict | None, ca
         hist = dr.select(reprojected, hist_r, hist)
     dr.eval(color, *mom, hist, reprojected)
     return color, mom, hist, reprojected
+
+
+GRAD_DWN = 3  # asvgf.GRAD_DWN: the strata and gradient cells are 3x3 pixels
+
+
+def gradient(dev, w: int, h: int, lum, cur_pixels: np.ndarray, l_prev: np.ndarray):
+    """:meth:`methods.quake_drt.asvgf.ASVGF.gradient` on the device (stage 3): per 3x3 cell (delta, max, luminance
+    mean, standard deviation) as four Float arrays of the cell grid. ``lum``: the frame's luminance (Float, full
+    resolution); ``cur_pixels`` the gradient samples' pixels and ``l_prev`` their previous luminance (host arrays,
+    from the forward projection). The cell sums take numpy's order (rows of three, then the rows)."""
+    dr, F, I32 = dev.dr, dev.Float, dev.Int32
+    cw, ch = -(-w // GRAD_DWN), -(-h // GRAD_DWN)
+    i = dev.arange(cw * ch)
+    cy, cx = I32(i // cw), I32(i % cw)
+    total = total2 = None
+    for a in range(GRAD_DWN):
+        row = row2 = None
+        for b in range(GRAD_DWN):
+            y, x = cy * GRAD_DWN + a, cx * GRAD_DWN + b
+            inside = (y < h) & (x < w)
+            v = dr.gather(F, lum, _index(dev, dr.select(inside, y, 0), dr.select(inside, x, 0), w), inside)
+            row, row2 = (v, v * v) if row is None else (row + v, row2 + v * v)
+        total, total2 = (row, row2) if total is None else (total + row, total2 + row2)
+    mean = total / F(9.0)
+    std = dr.sqrt(dr.maximum(total2 / F(9.0) - mean * mean, 0.0))
+    delta, mx = dr.zeros(F, cw * ch), dr.zeros(F, cw * ch)
+    if len(cur_pixels):
+        cur = np.asarray(cur_pixels, np.int64)
+        cells = dev.to_device(((cur // w) // GRAD_DWN * cw + (cur % w) // GRAD_DWN).astype(np.uint32), dev.UInt32)
+        l_cur = dr.gather(F, lum, dev.to_device(cur.astype(np.uint32), dev.UInt32))
+        lp = dev.to_device(np.asarray(l_prev, np.float32), F)
+        dr.scatter(delta, l_cur - lp, cells)        # one sample per cell (the forward projection keeps the first)
+        dr.scatter(mx, dr.maximum(l_cur, lp), cells)
+    dr.eval(delta, mx, mean, std)
+    return delta, mx, mean, std
+
+
+def gradient_atrous(dev, grad, w: int, h: int, s):
+    """:meth:`methods.quake_drt.asvgf.ASVGF.gradient_atrous` on the device (stage 4): lambda per cell (Float)."""
+    dr, F, I32 = dev.dr, dev.Float, dev.Int32
+    cw, ch = -(-w // GRAD_DWN), -(-h // GRAD_DWN)
+    i = dev.arange(cw * ch)
+    y, x = I32(i // cw), I32(i % cw)
+    delta, mx, mean, std = grad
+    val = [delta, mx]
+    var = std * std
+    lum = dr.minimum(mean, F(8.0))  # the thesis code's min(lum, 8)
+
+    def tap(dy, dx):
+        yy, xx = y + dy, x + dx
+        inside = (yy >= 0) & (yy < ch) & (xx >= 0) & (xx < cw)
+        return _index(dev, dr.select(inside, yy, 0), dr.select(inside, xx, 0), cw), inside
+
+    for it in range(int(s.gradient_iterations)):
+        step = 1 << it
+        sig = dr.zeros(F, cw * ch)  # denoise.gaussian3x3(var, float32), then doubled
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                j, inside = tap(dy, dx)
+                sig = sig + dr.gather(F, var, j, inside) * F((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
+        sig = dr.maximum(F(float(s.gradient_sigma)) * (F(2.0) * sig), F(1e-8))
+        acc, wsum, vacc = list(val), dr.full(F, 1.0, cw * ch), var
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dx == 0 and dy == 0:
+                    continue
+                j, inside = tap(dy * step, dx * step)
+                lq = dr.gather(F, lum, j, inside)
+                d = lum - lq
+                wq = dr.select(inside, F(1.0), F(0.0)) * dr.exp(-(d * d) / sig)
+                acc = [a + dr.gather(F, v, j, inside) * wq for a, v in zip(acc, val)]
+                vacc = vacc + dr.gather(F, var, j, inside) * wq * wq
+                wsum = wsum + wq
+        val = [a / wsum for a in acc]
+        var = vacc / (wsum * wsum)
+        dr.eval(*val, var)
+    delta, mx = dr.abs(val[0]), val[1]
+    lam = dr.select(mx > 1e-6, dr.minimum(delta / dr.maximum(mx, F(1e-12)), 1.0), 0.0)
+    dr.eval(lam)
+    return lam
+
+
+def antilag(dev, lam, w: int, h: int):
+    """:meth:`methods.quake_drt.asvgf.ASVGF.antilag` on the device: per pixel the largest lambda of the 3x3 gradient
+    cells around its cell (Float, full resolution)."""
+    dr, F, I32 = dev.dr, dev.Float, dev.Int32
+    cw, ch = -(-w // GRAD_DWN), -(-h // GRAD_DWN)
+    y, x = _pixels(dev, w, h)
+    cy, cx = y // GRAD_DWN, x // GRAD_DWN
+    m = dr.zeros(F, w * h)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            yy, xx = cy + dy, cx + dx
+            inside = (yy >= 0) & (yy < ch) & (xx >= 0) & (xx < cw)
+            q = dr.gather(F, lam, _index(dev, dr.select(inside, yy, 0), dr.select(inside, xx, 0), cw), inside)
+            m = dr.maximum(m, q)   # lambda >= 0: the zero outside changes no maximum
+    dr.eval(m)
+    return m

@@ -347,10 +347,9 @@ class Pipeline:
                 den.end_frame(raw.surface, raw.seeds, raw.illum, fed_back if fed_back is not None else color,
                               moments, hist, raw.guides)
             valid = raw.guides.valid
-            hist_mean, hist_max = den.hist_stats(hist, valid)
+            hist_mean, hist_max = den.stats(hist, valid)
             record.update(gradient_samples=int(len(fwd)) if fwd is not None else 0,
-                          antilag_mean=float(alag[valid].mean()) if valid.any() else 0.0,
-                          hist_len_mean=hist_mean, hist_len_max=hist_max)
+                          antilag_mean=den.stats(alag, valid)[0], hist_len_mean=hist_mean, hist_len_max=hist_max)
             with stage("composition") as st:
                 denoised = raw.compose(filtered, s.illumination)
                 st.pixels = w * h

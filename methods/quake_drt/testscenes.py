@@ -139,3 +139,18 @@ def still_camera(scene, position, target):
     """A copy of ``scene`` whose camera stands still at ``position`` looking at ``target``."""
     cam = dataclasses.replace(scene.camera, keys=[CameraKey(0.0, position, target)])
     return dataclasses.replace(scene, camera=cam)
+
+
+def switch_off(scene, name: str, frame: int, fps: float = 30.0) -> None:
+    """Makes ``scene.lights_at`` return light ``name`` with zero intensity from frame ``frame`` on (at ``fps``): a
+    light switched off, for the denoiser's anti-lag."""
+    original = scene.lights_at
+
+    def lights_at(t_s):
+        lights = original(t_s)
+        if t_s >= frame / fps - 1e-9:
+            lights = [dataclasses.replace(lt, intensity=np.zeros(3, np.float32)) if lt.name == name else lt
+                      for lt in lights]
+        return lights
+
+    scene.lights_at = lights_at

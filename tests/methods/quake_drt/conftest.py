@@ -10,9 +10,9 @@ from suite.core.trace import make
 class Renderer:
     """A scene, its tracer and a pipeline with given settings, driven frame by frame without the harness."""
 
-    def __init__(self, scene, vis=None, resolution=(48, 32), **settings):
+    def __init__(self, scene, vis=None, resolution=(48, 32), backend="embree", **settings):
         self.scene = testscenes.with_visibility(scene, vis) if vis is not None else scene
-        self.tracer = make("embree", self.scene)
+        self.tracer = make(backend, self.scene)
         base = dict(antialiasing=False, denoiser=False, taa=False)
         base.update(settings)
         self.settings = P.Settings.from_params(base)
@@ -32,6 +32,16 @@ class Renderer:
 
     def raw_stack(self, n, first_seed=100):
         return np.stack([self.raw(first_seed + i)[0] for i in range(n)]).astype(np.float64)
+
+    def run(self, frames):
+        """Full frames with scene time advancing at 30 per second (the camera path of the test scenes holds still):
+        (image, denoised, RawFrame, record) per frame."""
+        out, prev = [], None
+        for i in range(frames):
+            t = i / 30.0
+            out.append(self.pipeline.run_frame(self.scene, self.tracer, t, prev, 1000 + i))
+            prev = t
+        return out
 
     def frames(self, n, first_seed=0, t_s=0.0, each=None):
         """Runs ``n`` full frames of a paused camera; returns the list of displayed images."""

@@ -2,40 +2,24 @@
 samples re-shade the previous frame's points with its seeds, so a static scene has no gradient at all; a light
 switched off is picked up by the gradient in the frame it happens instead of ghosting for many frames (as it does
 with plain SVGF accumulation); and the filter stages work on their own."""
-import dataclasses
-
 import numpy as np
 import pytest
 
 from methods.quake_drt import asvgf
+from methods.quake_drt.testscenes import switch_off
 from suite.core.metrics import compare
 
 T_OFF = 10  # the frame at which the light goes off
 
 
-def _switch_off(scene, name, frame=T_OFF, fps=30.0):
+def _switch_off(scene, name, frame=T_OFF):
     """Makes ``scene.lights_at`` return light ``name`` with zero intensity from ``frame`` on."""
-    original = scene.lights_at
-
-    def lights_at(t_s):
-        lights = original(t_s)
-        if t_s >= frame / fps - 1e-9:
-            lights = [dataclasses.replace(lt, intensity=np.zeros(3, np.float32)) if lt.name == name else lt
-                      for lt in lights]
-        return lights
-
-    scene.lights_at = lights_at
+    switch_off(scene, name, frame)
 
 
 def _run(r, frames):
     """Full frames with scene time advancing (the camera path of the test scenes holds still)."""
-    out, prev = [], None
-    for i in range(frames):
-        t = i / 30.0
-        img, den, raw, rec = r.pipeline.run_frame(r.scene, r.tracer, t, prev, 1000 + i)
-        prev = t
-        out.append((img, den, raw, rec))
-    return out
+    return r.run(frames)
 
 
 @pytest.fixture

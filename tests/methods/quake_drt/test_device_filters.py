@@ -1,6 +1,8 @@
-"""On a Dr.Jit backend the A-SVGF's temporal accumulation, variance and à-trous passes (Table 6.9 stages 5-7) and
-TAA run as device kernels (methods/quake_drt/device.py, suite.core.device.denoise) with their histories on the
-device: the frames are the host stages' frames (to rounding), and the copies they make are counted."""
+"""On a Dr.Jit backend the A-SVGF's stages 3-7 (Table 6.9: gradient image, gradient à-trous and anti-lag, temporal
+accumulation, variance, à-trous) and TAA run as device kernels (methods/quake_drt/device.py,
+suite.core.device.denoise) with their histories on the device: the frames are the host stages' frames (to
+rounding), a light switched off is picked up by the device's gradients as by the host's, and the copies are
+counted."""
 import numpy as np
 import pandas as pd
 import pytest
@@ -59,3 +61,23 @@ def test02_device_taa_gives_the_host_taa_with_its_history_on_the_device(drjit_de
         assert b.dtype == np.float32 and b.shape == a.shape
         np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-7)
     assert not np.allclose(a, c)                                # the history was blended in
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test03_a_light_switched_off_is_picked_up_by_the_device_gradients_as_by_the_hosts(renderer, two_rooms, backend):
+    from methods.quake_drt.testscenes import switch_off
+
+    t_off = 10
+    scene, vis = two_rooms(door_open=False, lights_in_b=1, camera="a", resolution=(64, 40))
+    runs = {}
+    for on_device in (False, True):
+        r = renderer(scene, vis, (64, 40), backend=backend, num_random_dl=1, denoiser=True, taa=True)
+        if not on_device:
+            r.tracer = RecordingTracer(r.tracer)                 # hides the device: the host stages
+        switch_off(r.scene, "a_ceiling", t_off)
+        runs[on_device] = r.run(t_off + 3)
+    for (a, _, _, rec_a), (b, _, _, rec_b) in zip(runs[False], runs[True]):
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5)
+        assert rec_b["antilag_mean"] == pytest.approx(rec_a["antilag_mean"], rel=1e-4, abs=1e-6)
+    assert runs[True][t_off][3]["antilag_mean"] > 0.2 and runs[True][t_off - 1][3]["antilag_mean"] < 1e-5
+    assert runs[True][t_off][3]["host_device_bytes"] > 0 and runs[False][t_off][3]["host_device_bytes"] == 0
