@@ -159,15 +159,21 @@ def _svgf_ms(args, devices, scene, repeats: int) -> dict:
     from methods.layered_pvs import server
     from suite.core.trace import make
 
-    out = {}
-    for name, device in [("host", None)] + [(b.replace("mitsuba-", ""), _device(scene, b, make)) for b in devices]:
+    from suite.harness.cli import device_columns
+
+    def timed(name, backend):
+        device = _device(scene, backend, make) if backend else None
         server.denoise_fragments(*args, device=device)
         times = []
         for _ in range(max(int(repeats), 1)):
             t0 = time.perf_counter()
             server.denoise_fragments(*args, device=device)
             times.append(1e3 * (time.perf_counter() - t0))
-        out[f"svgf_{name}_ms"] = float(np.median(times))
+        return {f"svgf_{name}_ms": float(np.median(times))}
+
+    out = timed("host", None)
+    for b in devices:
+        out.update(device_columns("layered_pvs", b, lambda b=b: timed(b.replace("mitsuba-", ""), b)))
     return out
 
 
@@ -299,8 +305,9 @@ def run(argv=None) -> dict:
         layer_counts = [int(x) for x in args.layers.split(",")]
     except ValueError:
         raise UserError(f"bad --resolutions '{args.resolutions}' or --layers '{args.layers}'") from None
-    from suite.harness.cli import bench_scene
+    from suite.harness.cli import bench_devices, bench_scene
 
+    devices = bench_devices(args.device)
     args.scene = bench_scene(args.scene, "layered_pvs")
     scene = runner.load_scene(args.scene)
     tracer = runner.make_tracer(args.backend, scene)
@@ -308,9 +315,6 @@ def run(argv=None) -> dict:
 
     _warm_up()
     t_s = 0.5 * scene.camera.duration_s
-    from suite.core.trace import device_backends
-
-    devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
     out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS, "devices": devices,
            "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s, args.repeats, devices),
            "codecs": codec_rows(args.codec_size)}

@@ -46,7 +46,6 @@ import numpy as np
 from methods.quake_drt import asvgf as asvgf_mod
 from methods.quake_drt import culling, direct
 from methods.quake_drt import pipeline as pl
-from suite.core.trace import device_backends
 from suite.core.trace.recording import RecordingTracer
 
 SCHEMA_VERSION = 1
@@ -231,6 +230,8 @@ def _device_of(scene, backend: str):
 
 def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()) -> dict:
     """Part ``asvgf`` (module docstring)."""
+    from suite.harness.cli import device_columns
+
     rows = []
     for res in resolutions:
         f = _Frame(scene, tracer, res, t_s, num_random_dl=1, denoiser=True, taa=True)
@@ -271,32 +272,37 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
         on_device = {}
         own, own_prev_dev = den.device, den.prev_dev
         for backend in devices:
-            den.device = _device_of(scene, backend)
-            den.prev_dev = None
-            dtaa = p._device_taa(den.device)
-
-            def chain():
-                den._frame_guides = den._frame_device = den._frame_colour = None
-                t = [time.perf_counter()]
-                c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
-                t.append(time.perf_counter())
-                v_d = den.variance(raw.illum, m_d, h_d, raw.guides)
-                t.append(time.perf_counter())
-                den.atrous(c_d, v_d, raw.guides)
-                t.append(time.perf_counter())
-                dtaa.history = taa_dev_history
-                dtaa(composed, raw.g.motion)
-                t.append(time.perf_counter())
-                return np.diff(t) * 1e3
-
-            dtaa.history = None
-            dtaa(composed, raw.g.motion)  # the TAA history of this frame, kept on the device for the timed calls
-            taa_dev_history = dtaa.history
-            chain()  # compiles; uploads the history
-            per = np.median([chain() for _ in range(max(1, repeats))], axis=0)
             short = backend.replace("mitsuba-", "")
-            for name, ms in zip(("temporal", "variance", "atrous", "taa"), per):
-                on_device[f"{short}_{name}_ms"] = float(ms)
+
+            def columns():
+                den.device = _device_of(scene, backend)
+                den.prev_dev = None
+                dtaa = p._device_taa(den.device)
+                taa_history = {}
+
+                def chain():
+                    den._frame_guides = den._frame_device = den._frame_colour = None
+                    t = [time.perf_counter()]
+                    c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
+                    t.append(time.perf_counter())
+                    v_d = den.variance(raw.illum, m_d, h_d, raw.guides)
+                    t.append(time.perf_counter())
+                    den.atrous(c_d, v_d, raw.guides)
+                    t.append(time.perf_counter())
+                    dtaa.history = taa_history["kept"]
+                    dtaa(composed, raw.g.motion)
+                    t.append(time.perf_counter())
+                    return np.diff(t) * 1e3
+
+                dtaa.history = None
+                dtaa(composed, raw.g.motion)  # the TAA history of this frame, kept on the device for the timed calls
+                taa_history["kept"] = dtaa.history
+                chain()  # compiles; uploads the history
+                per = np.median([chain() for _ in range(max(1, repeats))], axis=0)
+                return {f"{short}_{name}_ms": float(ms) for name, ms in zip(("temporal", "variance", "atrous", "taa"),
+                                                                             per)}
+
+            on_device.update(device_columns("quake_drt", backend, columns))
         p._taa_dev = None
         den.device, den.prev_dev = own, own_prev_dev
         den.prev = saved
@@ -423,9 +429,10 @@ def default_scene() -> str:
 def run(args) -> dict:
     from suite.errors import UserError
     from suite.harness import runner
-    from suite.harness.cli import bench_parts
+    from suite.harness.cli import bench_devices, bench_parts
 
     parts = bench_parts(args.parts, PARTS, args.backend)
+    devices = bench_devices(args.device)
     if args.repeats < 1:
         raise UserError("--repeats must be >= 1")
     name = args.scene or default_scene()
@@ -443,7 +450,6 @@ def run(args) -> dict:
                   for r in _resolutions(args.rays_larger)]
         out["rays"]["by_pixels"] = [ratios_row(r) for r in [out["rays"], *larger]]
     if "asvgf" in parts:
-        devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
         out["asvgf"] = {"backend": args.backend, "devices": devices,
                         **bench_asvgf(scene, tracer, many, args.time, args.repeats, devices)}
     if "lights" in parts:
@@ -482,6 +488,9 @@ def format_results(out: dict) -> str:
                          f"{stages}")
             for b in r.get("devices", []):
                 short = b.replace("mitsuba-", "")
+                if f"{short}_error" in row:
+                    lines.append(f"    on {b}: failed ({row[short + '_error']})")
+                    continue
                 lines.append(f"    on {b}: " + "  ".join(f"{k} {row[f'{short}_{k}_ms']:.1f} (host {row[k + '_ms']:.1f})"
                                                      for k in ("temporal", "variance", "atrous", "taa")))
         if r["fit"]:

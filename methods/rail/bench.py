@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 
-from suite.core.trace import device_backends
 from suite.core.trace.recording import RecordingTracer
 
 SCHEMA_VERSION = 1
@@ -187,6 +186,7 @@ def bench_reconstruction(scene, tracer, targets, resolutions, repeats: int, devi
     """Host IDW (``grid.idw``, numba, one thread) on ``tracer``'s G-buffers, and beside it the device path's IDW on
     each backend of ``devices`` (its own G-buffer of the same view; the same records and irradiance)."""
     from methods.rail.grid import MultiRefGrid, idw
+    from suite.harness.cli import device_columns
 
     rows, memory = [], []
     mu = float(_params()["idw_mu"])
@@ -212,13 +212,19 @@ def bench_reconstruction(scene, tracer, targets, resolutions, repeats: int, devi
             line = (f"  idw |Q|={len(pts):6d} {res[0]}x{res[1]}: host {row['ms_per_megapixel']:8.1f} ms/MP, "
                     f"{row['records_visited_per_pixel']:.1f} records/pixel")
             for backend in devices:
-                d = _device_idw(scene, backend, prep["grid_geometry"], grid, pts, E, res, mu, repeats)
                 short = backend.replace("mitsuba-", "")
-                mp = max(d["pixels"], 1) / 1e6
-                row.update({f"{short}_idw_ms": d["ms"], f"{short}_ms_per_megapixel": d["ms"] / mp,
+
+                def columns():
+                    d = _device_idw(scene, backend, prep["grid_geometry"], grid, pts, E, res, mu, repeats)
+                    mp = max(d["pixels"], 1) / 1e6
+                    return {f"{short}_idw_ms": d["ms"], f"{short}_ms_per_megapixel": d["ms"] / mp,
                             f"{short}_kernel_ms_per_megapixel": d["kernel_ms"] / mp,
-                            f"{short}_speedup": row["ms_per_megapixel"] / (d["ms"] / mp)})
-                line += f", {short} {d['ms'] / mp:8.1f} ms/MP (device {d['kernel_ms'] / mp:.1f})"
+                            f"{short}_speedup": row["ms_per_megapixel"] / (d["ms"] / mp)}
+
+                row.update(device_columns("rail", backend, columns))
+                if f"{short}_ms_per_megapixel" in row:
+                    line += (f", {short} {row[f'{short}_ms_per_megapixel']:8.1f} ms/MP (device "
+                             f"{row[f'{short}_kernel_ms_per_megapixel']:.1f})")
             rows.append(row)
             print(line)
     return {"scene": scene.name, "rows": rows, "memory": memory, "devices": list(devices)}
@@ -309,8 +315,9 @@ def run(args) -> dict:
     from suite.core.scene import load
     from suite.core.trace import make
 
-    from suite.harness.cli import bench_scene
+    from suite.harness.cli import bench_devices, bench_scene
 
+    devices = bench_devices(args.device)
     scene = load(bench_scene(args.scene, "rail"))
     tracer = make(args.backend, scene)
     targets = [int(x) for x in args.points.split(",")]
@@ -322,7 +329,6 @@ def run(args) -> dict:
         from suite.harness.runner import parse_resolution
 
         res = [tuple(parse_resolution(r)) for r in args.resolutions.split(",")]
-        devices = device_backends() if args.device == "auto" else [b for b in args.device.split(",") if b]
         out["reconstruction"] = {**bench_reconstruction(scene, tracer, targets, res, args.repeats, devices),
                                  "backend": args.backend}
     if "serving" in args.parts:

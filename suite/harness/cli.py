@@ -303,6 +303,37 @@ def bench_parts(text: str, known, backend: str) -> list[str]:
     return parts
 
 
+def bench_devices(text: str) -> list[str]:
+    """A method bench's ``--device``: ``auto`` is every Dr.Jit backend that works here, ``''`` none, else a
+    comma-separated list, each checked (a one-line error naming a backend that is not a Dr.Jit one or does not work
+    on this machine)."""
+    from suite.core.trace import backend_status, device_backends
+
+    if text == "auto":
+        return device_backends()
+    names = [b.strip() for b in text.split(",") if b.strip()]
+    status = backend_status()
+    for b in names:
+        if b not in ("mitsuba-llvm", "mitsuba-cuda"):
+            raise UserError(f"--device: '{b}' is not a Dr.Jit backend (choose from auto, mitsuba-llvm, mitsuba-cuda)")
+        if not status.get(b, {}).get("available"):
+            raise UserError(f"--device: backend '{b}' does not work on this machine ({status.get(b, {}).get('detail')})")
+    return names
+
+
+def device_columns(bench: str, backend: str, fn) -> dict:
+    """``fn()``'s columns of a device kernel's timing on ``backend``; where it fails, a warning naming the kernel's
+    bench and backend, and the error in a ``<backend>_error`` column instead (the host columns and the other
+    devices' stay valid)."""
+    try:
+        return fn()
+    except Exception as exc:  # noqa: BLE001 - reported, stored and shown in the report; the bench goes on
+        short = backend.replace("mitsuba-", "")
+        message = f"{type(exc).__name__}: {exc}".splitlines()[0]
+        print(f"{PROG}: warning: bench {bench}: the device kernel on {backend} failed: {message}", file=sys.stderr)
+        return {f"{short}_error": message}
+
+
 def bench_scene(name: str, bench: str, preferred: str = "dabrovic_sponza", fallback: str = "living_room") -> str:
     """A method bench's ``--scene``: ``auto`` is ``preferred`` where its data is on this machine, else ``fallback``
     (with a note); any other name is kept."""

@@ -160,3 +160,28 @@ def test11_an_async_run_that_no_update_reached_says_so():
     assert "no update reached" not in cli.format_summary(out)
     summary["mode"], summary["stats"] = "sync", {}
     assert "no update reached" not in cli.format_summary(out)
+
+
+def test12_a_bench_device_list_is_checked_and_a_failing_device_kernel_is_reported_not_fatal(capsys, monkeypatch):
+    from suite.core import trace
+    from suite.errors import UserError
+
+    status = {"mitsuba-llvm": {"available": True, "detail": "ok"},
+              "mitsuba-cuda": {"available": False, "detail": "no NVIDIA GPU"}}
+    monkeypatch.setattr(trace, "backend_status", lambda: status)
+    assert cli.bench_devices("") == [] and cli.bench_devices("auto") == ["mitsuba-llvm"]
+    assert cli.bench_devices("mitsuba-llvm") == ["mitsuba-llvm"]
+    for bad, words in (("embree", "not a Dr.Jit backend"), ("mitsuba-cuda", "does not work on this machine")):
+        with pytest.raises(UserError, match=words):
+            cli.bench_devices(bad)
+
+    assert cli.device_columns("rail", "mitsuba-llvm", lambda: {"llvm_idw_ms": 1.0}) == {"llvm_idw_ms": 1.0}
+
+    def fails():
+        raise RuntimeError("jit_optix_compile(): no OptiX")
+
+    assert cli.device_columns("rail", "mitsuba-cuda", fails) == {"cuda_error": "RuntimeError: jit_optix_compile(): "
+                                                                               "no OptiX"}
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == ["splitbench: warning: bench rail: the device kernel on mitsuba-cuda failed: "
+                                        "RuntimeError: jit_optix_compile(): no OptiX"]
