@@ -43,7 +43,6 @@ from pathlib import Path
 
 import numpy as np
 
-from methods.quake_drt import asvgf as asvgf_mod
 from methods.quake_drt import culling, direct
 from methods.quake_drt import pipeline as pl
 from suite.core.trace.recording import RecordingTracer
