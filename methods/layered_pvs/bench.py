@@ -157,12 +157,11 @@ def _svgf_ms(args, devices, scene, repeats: int) -> dict:
     """The layered SVGF on the recorded update's inputs: host (numba) ms and, per Dr.Jit device, the device kernel's
     ms (copies included); medians of ``repeats`` calls after a warm-up."""
     from methods.layered_pvs import server
-    from suite.core.trace import make
 
-    from suite.harness.cli import device_columns
+    from suite.harness.cli import bench_device, device_columns
 
     def timed(name, backend):
-        device = _device(scene, backend, make) if backend else None
+        device = bench_device(scene, backend) if backend else None
         server.denoise_fragments(*args, device=device)
         times = []
         for _ in range(max(int(repeats), 1)):
@@ -175,15 +174,6 @@ def _svgf_ms(args, devices, scene, repeats: int) -> dict:
     for b in devices:
         out.update(device_columns("layered_pvs", b, lambda b=b: timed(b.replace("mitsuba-", ""), b)))
     return out
-
-
-_DEVICES: dict = {}
-
-
-def _device(scene, backend, make):
-    if (scene.name, backend) not in _DEVICES:
-        _DEVICES[scene.name, backend] = make(backend, scene).device
-    return _DEVICES[scene.name, backend]
 
 
 def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3, devices=()):

@@ -29,7 +29,6 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
     step_i = dev.opaque(I32, int(step))
     step_f = dev.opaque(F64, float(step))
     int_n = int(sigma_n) if sigma_n == math.floor(sigma_n) and 0 < sigma_n <= 1024 else 0
-    centre = dr.full(dev.Bool, True, dr.width(frags))
     p = dr.gather(dev.Vector3d, pos, frags)
     n = dr.gather(dev.Vector3d, nrm, frags)
     c = dr.gather(dev.Vector3d, col, frags)
@@ -40,13 +39,16 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
     shift_scale = dev.opaque(F64, float(shift_scale))
     sigma_l = dev.opaque(F64, float(sigma_l))
     size = dr.width(frags)
-    b3 = dev.to_device(np.asarray(B3, np.float64), F64)
+
+    def b3(k):  # B3[k + 2] for an offset k in -2..2 (the table's values, selected)
+        a = dr.abs(k)
+        return dr.select(a == 0, B3[2], dr.select(a == 1, B3[1], B3[0]))
 
     # The 25 taps as a symbolic loop (one small kernel; written out, LLVM took seconds to compile each pass shape).
     def body(t, wsum, vsum, acc):
         ty, tx = I32(t // 5) - 2, I32(t % 5) - 2
         yy, xx = y + ty * step_i, x + tx * step_i
-        inside = centre & (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
+        inside = (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
         base = U(dr.select(inside, yy * W + xx, 0)) * L
         radius = dr.sqrt(F64(tx * tx + ty * ty))          # math.sqrt of the same whole number: exact
         shift = shift_scale * foot * radius * step_f
@@ -85,7 +87,7 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
         dist_px = radius * step_f
         wzl = dr.exp(-(dr.abs(best_pd) / (foot * (dist_px + 1.0) + 1e-12)
                        + dr.abs(lc - ln) / (sigma_l * sd + 1e-10)))
-        wgt = dr.gather(F64, b3, U(ty + 2)) * dr.gather(F64, b3, U(tx + 2)) * wn * wzl
+        wgt = F64(b3(ty)) * F64(b3(tx)) * wn * wzl
         wsum = dr.select(ok, wsum + wgt, wsum)
         vsum = dr.select(ok, vsum + wgt * wgt * vb, vsum)
         acc = dr.select(ok, dev.Vector3d(acc.x + wgt * cb.x, acc.y + wgt * cb.y, acc.z + wgt * cb.z), acc)

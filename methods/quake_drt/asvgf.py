@@ -168,20 +168,28 @@ class ASVGF:
         self.frame = 0
         self.prev = None  # dict of the previous frame's buffers
         self.device = None  # a suite.core.device.Device: stages 5-7 run there (set per frame by the pipeline)
-        self._frame_guides = None  # (Guides, their DeviceFrame): the filter guides uploaded once per frame
-        self._frame_device = None  # (Guides, dict): the frame's reprojection guides on the device
-        self._frame_colour = None  # (illum, dict): the frame's colour and luminance on the device
+        # (Guides, dict): the frame's guides on the device, uploaded on first use: "filter" (a DeviceFrame of the
+        # edge-stopping guides) and "reprojection" (methods.quake_drt.device.upload_reprojection_guides)
+        self._frame = None
+        self._frame_colour = None  # (illum, dict, host luminance): the frame's colour and luminance on the device
         self.prev_dev = None  # the history on the device (colour, moments, length, guides) after a device frame
         self.copied_bytes = 0  # bytes stages 5-7 copied between host and device memory (device path)
+
+    def _frame_on_device(self, guides: Guides) -> dict:
+        """The frame's guides on the device so far (a new frame's guides start empty)."""
+        if self._frame is None or self._frame[0] is not guides:
+            self._frame = (guides, {})
+        return self._frame[1]
 
     def _device_frame(self, guides: Guides):
         """The filter guides on the device (uploaded on the frame's first use, a counted copy)."""
         from suite.core.device.denoise import DeviceFrame
 
-        if self._frame_guides is None or self._frame_guides[0] is not guides:
-            self._frame_guides = (guides, DeviceFrame.from_host(self.device, guides.filter_depth,
-                                                                guides.filter_normal, guides.valid))
-        return self._frame_guides[1]
+        frame = self._frame_on_device(guides)
+        if "filter" not in frame:
+            frame["filter"] = DeviceFrame.from_host(self.device, guides.filter_depth, guides.filter_normal,
+                                                    guides.valid)
+        return frame["filter"]
 
     def counted_copies(self, fn):
         """Runs ``fn`` and adds what it copied between host and device memory to :attr:`copied_bytes` (the
@@ -424,18 +432,19 @@ class ASVGF:
         if self._frame_colour is None or self._frame_colour[0] is not illum:
             dev = self.device
             cur = np.asarray(illum, np.float32).reshape(self.h, self.w, 3)
+            lum = luminance(cur)  # numpy's rounding of the product (a matrix product on the host)
             self._frame_colour = (illum, {"rgb": dev.to_device(cur.reshape(-1, 3), dev.Vector3f),
-                                          # numpy's rounding of the product (a matrix product on the host)
-                                          "lum": dev.to_device(luminance(cur).reshape(-1), dev.Float)})
+                                          "lum": dev.to_device(lum.reshape(-1), dev.Float)}, lum)
         return self._frame_colour[1]
 
     def _device_inputs(self, illum, guides: Guides) -> dict:
         """The frame's reprojection guides, colour and luminance on the device (uploaded once per frame)."""
         from methods.quake_drt import device as qd
 
-        if self._frame_device is None or self._frame_device[0] is not guides:
-            self._frame_device = (guides, qd.upload_reprojection_guides(self.device, guides))
-        return {**self._frame_device[1], **self._device_colour(illum)}
+        frame = self._frame_on_device(guides)
+        if "reprojection" not in frame:
+            frame["reprojection"] = qd.upload_reprojection_guides(self.device, guides)
+        return {**frame["reprojection"], **self._device_colour(illum)}
 
     def _previous_on_device(self) -> dict | None:
         """The history as the device kernels read it (uploaded from the host when the last frame ran there)."""
@@ -524,8 +533,8 @@ class ASVGF:
         return (total / n if n else 0.0), float(dr.max(a)[0])
 
     def _device_inputs_valid(self, valid):
-        if self._frame_device is not None:
-            return self._frame_device[1]["valid"]
+        if self._frame is not None and "reprojection" in self._frame[1]:
+            return self._frame[1]["reprojection"]["valid"]
         return self.device.to_device(np.asarray(valid, bool).reshape(-1), self.device.Bool)
 
     # -- end of frame ------------------------------------------------------------------------------------------
@@ -535,22 +544,19 @@ class ASVGF:
         (gradients), history colour, moments and length, and the reprojection guides; after a device frame the
         last four stay on the device."""
         h, w = self.h, self.w
-        if not isinstance(color, np.ndarray):
-            cur = self._frame_device[1]
-            self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
-                         "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
-                         "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),
-                         "camera": np.asarray(guides.camera, np.float64)}
-            self.prev_dev = {"valid": cur["valid"], "depth": cur["depth"], "normal": cur["normal"], "color": color,
-                             "moments": moments, "hist": hist}
-            self.frame += 1
-            return
-        self.prev_dev = None
+        on_device = not isinstance(color, np.ndarray)
+        lum = self._frame_colour[2] if on_device and self._frame_colour[0] is illum else \
+            luminance(illum.reshape(h, w, 3))
         self.prev = {"sample_valid": surface.valid.copy(), "prim": surface.prim.copy(), "u": surface.u.copy(),
                      "v": surface.v.copy(), "seeds": np.asarray(seeds, np.uint32).reshape(-1).copy(),
-                     "lum": luminance(illum.reshape(h, w, 3)).reshape(-1),
-                     "color": color.astype(np.float32), "moments": moments.astype(np.float32),
-                     "hist": hist.astype(np.float32), "depth": guides.depth.astype(np.float32),
-                     "normal": guides.normal.astype(np.float32), "camera": np.asarray(guides.camera, np.float64),
-                     "valid": guides.valid.copy()}
+                     "lum": lum.reshape(-1), "camera": np.asarray(guides.camera, np.float64)}
+        if on_device:
+            cur = self._frame[1]["reprojection"]
+            self.prev_dev = {"valid": cur["valid"], "depth": cur["depth"], "normal": cur["normal"], "color": color,
+                             "moments": moments, "hist": hist}
+        else:
+            self.prev_dev = None
+            self.prev.update(color=color.astype(np.float32), moments=moments.astype(np.float32),
+                             hist=hist.astype(np.float32), depth=guides.depth.astype(np.float32),
+                             normal=guides.normal.astype(np.float32), valid=guides.valid.copy())
         self.frame += 1

@@ -214,22 +214,9 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
             "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
 
 
-_DEVICES: dict = {}
-
-
-def _device_of(scene, backend: str):
-    """The Dr.Jit device of a ``backend`` tracer on ``scene`` (made once per process)."""
-    from suite.core.trace import make
-
-    key = (scene.name, backend)
-    if key not in _DEVICES:
-        _DEVICES[key] = make(backend, scene).device
-    return _DEVICES[key]
-
-
 def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()) -> dict:
     """Part ``asvgf`` (module docstring)."""
-    from suite.harness.cli import device_columns
+    from suite.harness.cli import bench_device, device_columns
 
     rows = []
     for res in resolutions:
@@ -274,13 +261,13 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
             short = backend.replace("mitsuba-", "")
 
             def columns():
-                den.device = _device_of(scene, backend)
+                den.device = bench_device(scene, backend)
                 den.prev_dev = None
                 dtaa = p._device_taa(den.device)
                 taa_history = {}
 
                 def chain():
-                    den._frame_guides = den._frame_device = den._frame_colour = None
+                    den._frame = den._frame_colour = None
                     t = [time.perf_counter()]
                     c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
                     t.append(time.perf_counter())

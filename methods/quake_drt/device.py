@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from suite.core.device.denoise import PixelGrid
+
 
 def _pixels(dev, w: int, h: int):
     i = dev.arange(w * h)
@@ -78,11 +80,13 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
         return centre
     bx, by = motion
     best = bx * bx + by * by
+    grid = PixelGrid(dev, w, h)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
-            yy, xx = y + dy, x + dx
-            inside = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
-            j = _index(dev, dr.select(inside, yy, 0), dr.select(inside, xx, 0), w)
+            t = grid.tap(dy, dx)
+            if t is None:
+                continue
+            j, inside = t
             qx, qy = dr.gather(F64, motion[0], j, inside), dr.gather(F64, motion[1], j, inside)
             ln = qx * qx + qy * qy
             longer = inside & (ln > best)
@@ -228,26 +232,23 @@ def gradient(dev, w: int, h: int, lum, cur_pixels: np.ndarray, l_prev: np.ndarra
 
 def gradient_atrous(dev, grad, w: int, h: int, s):
     """:meth:`methods.quake_drt.asvgf.ASVGF.gradient_atrous` on the device (stage 4): lambda per cell (Float)."""
-    dr, F, I32 = dev.dr, dev.Float, dev.Int32
+    dr, F = dev.dr, dev.Float
     cw, ch = -(-w // GRAD_DWN), -(-h // GRAD_DWN)
-    i = dev.arange(cw * ch)
-    y, x = I32(i // cw), I32(i % cw)
+    cells = PixelGrid(dev, cw, ch)
     delta, mx, mean, std = grad
     val = [delta, mx]
     var = std * std
     lum = dr.minimum(mean, F(8.0))  # the thesis code's min(lum, 8)
-
-    def tap(dy, dx):
-        yy, xx = y + dy, x + dx
-        inside = (yy >= 0) & (yy < ch) & (xx >= 0) & (xx < cw)
-        return _index(dev, dr.select(inside, yy, 0), dr.select(inside, xx, 0), cw), inside
 
     for it in range(int(s.gradient_iterations)):
         step = 1 << it
         sig = dr.zeros(F, cw * ch)  # denoise.gaussian3x3(var, float32), then doubled
         for dy in (-1, 0, 1):
             for dx in (-1, 0, 1):
-                j, inside = tap(dy, dx)
+                t = cells.tap(dy, dx)
+                if t is None:  # outside for every cell: adds nothing
+                    continue
+                j, inside = t
                 sig = sig + dr.gather(F, var, j, inside) * F((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
         sig = dr.maximum(F(float(s.gradient_sigma)) * (F(2.0) * sig), F(1e-8))
         acc, wsum, vacc = list(val), dr.full(F, 1.0, cw * ch), var
@@ -255,7 +256,10 @@ def gradient_atrous(dev, grad, w: int, h: int, s):
             for dx in (-1, 0, 1):
                 if dx == 0 and dy == 0:
                     continue
-                j, inside = tap(dy * step, dx * step)
+                t = cells.tap(dy * step, dx * step)
+                if t is None:
+                    continue
+                j, inside = t
                 lq = dr.gather(F, lum, j, inside)
                 d = lum - lq
                 wq = dr.select(inside, F(1.0), F(0.0)) * dr.exp(-(d * d) / sig)

@@ -141,9 +141,6 @@ def _gbuffer_samples(scene, tracer, resolution):
     return g.position[g.valid], g.normal[g.valid], int(g.valid.sum())
 
 
-_DEVICE_TRACERS: dict = {}
-
-
 def _device_idw(scene, backend, grid_geometry, grid, pts, E, resolution, mu: float, repeats: int) -> dict:
     """The device path's IDW (methods/rail/device.py) on ``backend``'s own G-buffer of the same view: wall ms of a
     call (the per-frame upload of the records' irradiance included) and the device time alone (Dr.Jit's kernel
@@ -152,13 +149,10 @@ def _device_idw(scene, backend, grid_geometry, grid, pts, E, resolution, mu: flo
 
     from methods.rail import device as rdev
     from suite.core.gbuffer import render_gbuffer_device
-    from suite.core.trace import make
+    from suite.harness.cli import bench_device
 
-    key = (scene.name, backend)
-    if key not in _DEVICE_TRACERS:
-        _DEVICE_TRACERS[key] = make(backend, scene)
-    tracer = _DEVICE_TRACERS[key]
-    dev = tracer.device
+    dev = bench_device(scene, backend)
+    tracer = dev.tracer
     t = scene.camera.frame_time_s(0) + 0.5 * scene.camera.duration_s
     g = render_gbuffer_device(scene, tracer, t, tuple(resolution))
     cg = SimpleNamespace(geometry=grid_geometry, grid=grid, position=pts.position, normal=pts.normal,

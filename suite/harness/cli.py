@@ -321,6 +321,20 @@ def bench_devices(text: str) -> list[str]:
     return names
 
 
+_BENCH_DEVICES: dict = {}
+
+
+def bench_device(scene, backend: str):
+    """The Dr.Jit device of a ``backend`` tracer on ``scene``, made once per process (``.tracer`` is the tracer): what
+    a method bench times its device kernels on beside the run's own backend."""
+    from suite.core.trace import make
+
+    key = (scene.name, backend)
+    if key not in _BENCH_DEVICES:
+        _BENCH_DEVICES[key] = make(backend, scene).device
+    return _BENCH_DEVICES[key]
+
+
 def device_columns(bench: str, backend: str, fn) -> dict:
     """``fn()``'s columns of a device kernel's timing on ``backend``; where it fails, a warning naming the kernel's
     bench and backend, and the error in a ``<backend>_error`` column instead (the host columns and the other

@@ -42,14 +42,14 @@ class DeviceFrame:
                    dev.to_device(valid.reshape(-1), dev.Bool))
 
 
-class _Grid:
-    """Pixel coordinates of a frame and its taps at integer offsets (a gather index and an inside mask)."""
+class PixelGrid:
+    """Pixel coordinates of a row-major image and its taps at integer offsets (a gather index and an inside mask):
+    the stencil of the device filters here and of quake_drt's (methods/quake_drt/device.py)."""
 
     def __init__(self, dev, width: int, height: int):
         self.dev, self.w, self.h = dev, int(width), int(height)
         i = dev.arange(self.w * self.h)
         self.y, self.x = dev.Int32(i // self.w), dev.Int32(i % self.w)
-        self.i = i
 
     def tap(self, dy, dx):
         """(index of pixel (y + dy, x + dx), whether it lies in the image); None when no pixel's tap does. The
@@ -85,12 +85,12 @@ def _lum64(dev, c):
     return (F64(c.x) * 0.2126 + F64(c.y) * 0.7152) + F64(c.z) * 0.0722
 
 
-def depth_fwidth(frame: DeviceFrame, grid: _Grid | None = None):
+def depth_fwidth(frame: DeviceFrame, grid: PixelGrid | None = None):
     """:func:`suite.core.denoise.depth_fwidth` of the frame's (zeroed) depth: the largest |dz| to a valid
     4-neighbour, float32."""
     dev = frame.device
     dr, F = dev.dr, dev.Float
-    grid = grid or _Grid(dev, frame.width, frame.height)
+    grid = grid or PixelGrid(dev, frame.width, frame.height)
     d = dr.select(frame.valid, frame.depth, 0.0)
     out = dr.zeros(F, frame.width * frame.height)
     for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
@@ -103,7 +103,7 @@ def depth_fwidth(frame: DeviceFrame, grid: _Grid | None = None):
     return out
 
 
-def _gaussian3x3(dev, grid: _Grid, v):
+def _gaussian3x3(dev, grid: PixelGrid, v):
     """:func:`suite.core.denoise.gaussian3x3` in float64, row-major tap order, zero outside the image."""
     dr, F64 = dev.dr, dev.Float64
     g = dr.zeros(F64, grid.w * grid.h)
@@ -118,12 +118,12 @@ def _gaussian3x3(dev, grid: _Grid, v):
     return g
 
 
-def atrous_pass(frame: DeviceFrame, c, v, fw, step: int, s: AtrousSettings, grid: _Grid | None = None):
+def atrous_pass(frame: DeviceFrame, c, v, fw, step: int, s: AtrousSettings, grid: PixelGrid | None = None):
     """One pass with tap spacing ``step``: (colour Vector3f, variance Float), evaluated. ``fw``: max(|grad z|,
     1e-8) as :func:`atrous` computes it. The step is read from memory, so every pass runs the same kernel."""
     dev = frame.device
     dr, F, F64 = dev.dr, dev.Float, dev.Float64
-    grid = grid or _Grid(dev, frame.width, frame.height)
+    grid = grid or PixelGrid(dev, frame.width, frame.height)
     step_i = dev.opaque(dev.Int32, int(step))
     step_f = dev.opaque(F64, float(step))
     kern = kernel(int(s.radius))
@@ -165,7 +165,7 @@ def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = Atrou
     """:func:`suite.core.denoise.atrous` on the device: ``settings.iterations`` passes with steps 1, 2, 4, ...;
     (filtered colour Vector3f, filtered variance Float, the colour after pass ``feedback_tap`` or None)."""
     dev = frame.device
-    grid = _Grid(dev, frame.width, frame.height)
+    grid = PixelGrid(dev, frame.width, frame.height)
     fw = dev.dr.maximum(depth_fwidth(frame, grid), 1e-8)
     dev.dr.eval(fw)
     c, v, tapped = color, variance, None
@@ -181,7 +181,7 @@ def spatial_variance(frame: DeviceFrame, lum, phi_normal: float = 128.0, radius:
     the luminance variance of a bilateral (2r + 1)^2 window, Float, 0 where not valid."""
     dev = frame.device
     dr, F, F64 = dev.dr, dev.Float, dev.Float64
-    grid = _Grid(dev, frame.width, frame.height)
+    grid = PixelGrid(dev, frame.width, frame.height)
     z, n, valid = frame.depth, frame.normal, frame.valid
     fw64 = F64(dr.maximum(depth_fwidth(frame, grid), F(1e-3) * z))
     size = grid.w * grid.h
