@@ -14,7 +14,8 @@ One update is made outside the harness with :class:`LocalContext` (stages timed 
 
 ``svgf_host_ms`` and ``svgf_<device>_ms``: the layered SVGF (§4.4.1) on the recorded update's own inputs, the numba
 kernel and the Dr.Jit kernel (methods/layered_pvs/device.py, copies included) on each Dr.Jit backend that works here
-(``--device``), medians of the row's repeats.
+(``--device``), medians of the row's repeats. ``pack_host_ms`` and ``pack_<device>_ms`` likewise for the pack stage
+(relocation, packing, colour filling: ``packing.pack_stage``), the numba passes against the Dr.Jit kernels.
 
 The default sizes (:data:`DEFAULT_RESOLUTIONS`) run from 160x90 to 960x540, half the thesis's 1920x1080 in each
 direction: the ratios grow with the pixels, as each query's and each pass's fixed costs spread over more rays.
@@ -136,39 +137,37 @@ def _replay(tracer, log):
 
 
 @contextmanager
-def _denoise_inputs():
-    """Keeps the arguments of the update's layered SVGF (``server.denoise_fragments``) in the yielded dict."""
-    from methods.layered_pvs import server
-
-    kept, original = {}, server.denoise_fragments
+def _kept_inputs(module, name: str):
+    """Keeps the data arguments of the update's call of ``module.name`` (the layered SVGF,
+    ``server.denoise_fragments``; the pack stage, ``packing.pack_stage``) in the yielded dict."""
+    kept, original = {}, getattr(module, name)
 
     def keep(*args, **kwargs):
         kept["args"] = args  # the data; the method names its device by keyword
         return original(*args, **kwargs)
 
-    server.denoise_fragments = keep
+    setattr(module, name, keep)
     try:
         yield kept
     finally:
-        server.denoise_fragments = original
+        setattr(module, name, original)
 
 
-def _svgf_ms(args, devices, scene, repeats: int) -> dict:
-    """The layered SVGF on the recorded update's inputs: host (numba) ms and, per Dr.Jit device, the device kernel's
-    ms (copies included); medians of ``repeats`` calls after a warm-up."""
-    from methods.layered_pvs import server
-
+def _device_ms(column: str, fn, args, devices, scene, repeats: int) -> dict:
+    """``fn(*args, device=...)`` on the recorded update's inputs: host ms (``<column>_host_ms``) and, per Dr.Jit
+    device, the device kernels' ms, copies included (``<column>_<llvm|cuda>_ms``); medians of ``repeats`` calls
+    after a warm-up."""
     from suite.harness.cli import bench_device, device_columns
 
     def timed(name, backend):
         device = bench_device(scene, backend) if backend else None
-        server.denoise_fragments(*args, device=device)
+        fn(*args, device=device)
         times = []
         for _ in range(max(int(repeats), 1)):
             t0 = time.perf_counter()
-            server.denoise_fragments(*args, device=device)
+            fn(*args, device=device)
             times.append(1e3 * (time.perf_counter() - t0))
-        return {f"svgf_{name}_ms": float(np.median(times))}
+        return {f"{column}_{name}_ms": float(np.median(times))}
 
     out = timed("host", None)
     for b in devices:
@@ -177,12 +176,15 @@ def _svgf_ms(args, devices, scene, repeats: int) -> dict:
 
 
 def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3, devices=()):
+    from methods.layered_pvs import packing, server
+
     rows = []
     for res in resolutions:
         for L in layer_counts:
             p = {**params, "layers": L}
             rec = RecordingTracer(tracer)
-            with _denoise_inputs() as svgf_inputs:
+            with _kept_inputs(server, "denoise_fragments") as svgf_inputs, \
+                    _kept_inputs(packing, "pack_stage") as pack_inputs:
                 ctx, _, _, _ = one_update(scene, rec, p, res, t_s, t_s + 0.1)  # records the rays (and warms up)
             replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
             stage_ms = {stage: [] for stage in SERVER_STAGES}
@@ -210,7 +212,10 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
                          "client_render_ms": cctx.stage_ms.get("render"),
                          "render_ms_per_mpix": cctx.stage_ms.get("render") / (res[0] * res[1] / 1e6),
                          "update_bytes": len(ctx.sent["update"]),
-                         **(_svgf_ms(svgf_inputs["args"], devices, scene, reps) if "args" in svgf_inputs else {})})
+                         **(_device_ms("svgf", server.denoise_fragments, svgf_inputs["args"], devices, scene, reps)
+                            if "args" in svgf_inputs else {}),
+                         **(_device_ms("pack", packing.pack_stage, pack_inputs["args"], devices, scene, reps)
+                            if "args" in pack_inputs else {})})
     return rows
 
 

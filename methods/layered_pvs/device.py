@@ -119,3 +119,335 @@ def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations:
         c, v = _svgf_pass(dev, shape, frags, c, v, p, n, valid, d, 1 << it, pix_angle, shift_scale, sigma_l,
                           sigma_n)
     return dev.to_host(c, np.float64).reshape(shape + (3,))
+
+
+# ------------------------------------------------------------------------------------------ packing (§4.1.3-§4.1.5)
+#
+# The pack stage on the device: fragment relocation (Algorithm 2), block counts, the packed texture and its ternary
+# mask (Fig. 4.7, §4.5.2) and colour filling (§4.1.5), with the results of methods/layered_pvs/packing.py's compiled
+# passes (bit for bit: integer work, float64 depth means and float32 colour sums in the same order). Relocation and
+# colour filling go round after round inside a block (a tile), each round reading the state at its start, as one
+# CUDA block does in the thesis; here a lane takes a whole block (a tile): the block's slots are copied into the
+# lane's local memory (``dr.alloc_local``), its rounds run as symbolic loops over its pixels in the numba passes'
+# order, and the result is written back: one kernel for every block.
+
+
+def _uint8(dev):
+    """The variant's UInt8 type (the Mitsuba variant module has none)."""
+    import importlib
+
+    return importlib.import_module(dev.Float.__module__).UInt8
+
+
+def _block_lanes(dev, blocks, tile: int, bx_count: int, width: int):
+    """Lanes for the pixels of ``blocks`` (UInt32 block ids, row-major over the blocks), block after block, each
+    block's pixels row-major: the flat pixel index y * width + x of each lane."""
+    dr, I32, U = dev.dr, dev.Int32, dev.UInt32
+    t2 = tile * tile
+    blk = dr.repeat(blocks, t2)
+    local = dr.tile(dr.arange(U, t2), dr.width(blocks))
+    y = I32(blk // bx_count) * tile + I32(local // tile)
+    x = I32(blk % bx_count) * tile + I32(local % tile)
+    return U(y * width + x)
+
+
+def _used_slots(dev, slot_frag, pix, L: int, hw: int):
+    """Per lane: 1 + the highest occupied slot of its pixel (0 when it has none)."""
+    dr, I32 = dev.dr, dev.Int32
+    used = dr.zeros(I32, dr.width(pix))
+    for s in range(L):
+        used = dr.select(dr.gather(I32, slot_frag, pix + s * hw) >= 0, s + 1, used)
+    return used
+
+
+_NEIGHBOURS = ((-1, 0), (1, 0), (0, -1), (0, 1))  # up, down, left, right: the numba passes' order
+
+
+def _neighbour(dev, i, tile: int, dy: int, dx: int):
+    """(inside the block, local index) of the neighbour (dy, dx) of the block's pixel ``i`` (its own index where
+    outside)."""
+    dr, I32, U = dev.dr, dev.Int32, dev.UInt32
+    ly, lx = I32(i // tile) + dy, I32(i % tile) + dx
+    inside = (ly >= 0) & (ly < tile) & (lx >= 0) & (lx < tile)
+    return inside, dr.select(inside, U(ly * tile + lx), i)
+
+
+def _block_loop(dev, n: int, count: int, body, *state):
+    """``for i in range(count): state = body(i, *state)`` as a symbolic loop over ``n`` lanes."""
+    dr, U = dev.dr, dev.UInt32
+    out = dr.while_loop((dr.zeros(U, n),) + tuple(state), lambda i, *_: i < count,
+                        lambda i, *st: (i + 1,) + tuple(body(i, *st)))
+    return out[1:]
+
+
+def relocate_slots(dev, slot_frag, slot_depth, shape, tile: int, max_rounds: int = 64):
+    """:func:`methods.layered_pvs.packing.relocate`'s pass (Algorithm 2) on the device, a lane per block that has
+    two layers or more. ``slot_frag`` (Int32: the fragment index a slot holds, -1 for none) and ``slot_depth``
+    (Float64, inf where empty) are flat (L, H, W) arrays; returns ``slot_frag`` relocated."""
+    dr, I32, U, F64 = dev.dr, dev.Int32, dev.UInt32, dev.Float64
+    L, H, W = shape
+    hw, t2 = H * W, tile * tile
+    bx_count = W // tile
+    pix = _block_lanes(dev, dr.arange(U, (H // tile) * bx_count), tile, bx_count, W)
+    n_block = dr.block_reduce(dr.ReduceOp.Max, _used_slots(dev, slot_frag, pix, L, hw), t2)
+    work = dr.compress(n_block >= 2)
+    n = dr.width(work)
+    if n == 0:
+        return slot_frag
+    nb = dr.gather(I32, n_block, work)
+    corner = U(work // bx_count) * (tile * W) + U(work % bx_count) * tile   # the block's first pixel
+
+    def address(j):  # slot array index of the block's local slot j = s * t2 + i
+        i = j % t2
+        return (j // t2) * hw + corner + (i // tile) * W + i % tile
+
+    frag, dep = dr.alloc_local(I32, L * t2), dr.alloc_local(F64, L * t2)
+    moved = dr.alloc_local(I32, t2)
+
+    def load(j, frag, dep):
+        frag[j] = dr.gather(I32, slot_frag, address(j))
+        dep[j] = dr.gather(F64, slot_depth, address(j))
+        return frag, dep
+
+    frag, dep = _block_loop(dev, n, L * t2, load, frag, dep)
+
+    def layer(k, frag, dep, moved):
+        kk = U(k)
+
+        def decide(i, any_move, frag, dep, moved):
+            remaining = dr.zeros(I32, n)
+            for s in range(L):
+                remaining += I32((frag[s * t2 + i] >= 0) & (s >= k))
+            d = dep[kk * t2 + i]
+            closer = dr.zeros(dev.Bool, n)
+            for dy, dx in _NEIGHBOURS:
+                inside, j = _neighbour(dev, i, tile, dy, dx)
+                nn, nc = dep[(kk + 1) * t2 + j], dep[kk * t2 + j]
+                closer |= inside & dr.isfinite(nn) & (dr.abs(d - nn) < dr.abs(d - nc))
+            move = (frag[kk * t2 + i] >= 0) & (remaining < nb - k) & closer
+            moved[i] = I32(move)
+            return any_move | move, frag, dep, moved
+
+        def shift(i, frag, dep, moved):
+            # The fragment goes one slot back with the run behind it, up to the pixel's first gap after k.
+            move = moved[i] != 0
+            f = [frag[s * t2 + i] for s in range(L)]
+            z = [dep[s * t2 + i] for s in range(L)]
+            gap = dr.full(I32, L, n)
+            for s in range(L - 1, 0, -1):
+                gap = dr.select((s > k) & (f[s] < 0), s, gap)
+            for s in range(L):
+                behind = (s > k) & (s <= gap) if s else dr.zeros(dev.Bool, n)
+                nf = dr.select(s == k, -1, dr.select(behind, f[s - 1], f[s])) if s else dr.select(s == k, -1, f[s])
+                nz = dr.select(behind, z[s - 1], z[s]) if s else z[s]
+                frag[s * t2 + i] = dr.select(move, nf, f[s])
+                dep[s * t2 + i] = dr.select(move, nz, z[s])
+            return frag, dep, moved
+
+        def mean(i, frag, dep, moved):
+            # The emptied slot takes the mean depth of the neighbours' next-slot fragments (after the shifts), else
+            # its own next slot's (the fragment that moved).
+            total, count = dr.zeros(F64, n), dr.zeros(I32, n)
+            for dy, dx in _NEIGHBOURS:
+                inside, j = _neighbour(dev, i, tile, dy, dx)
+                nn = dep[(kk + 1) * t2 + j]
+                ok = inside & dr.isfinite(nn)
+                total = dr.select(ok, total + nn, total)
+                count += I32(ok)
+            own = dep[(kk + 1) * t2 + i]
+            dep[kk * t2 + i] = dr.select(moved[i] != 0, dr.select(count > 0, total / F64(count), own),
+                                         dep[kk * t2 + i])
+            return frag, dep, moved
+
+        def round_(r, go, frag, dep, moved):
+            any_move, frag, dep, moved = _block_loop(dev, n, t2, decide, dr.zeros(dev.Bool, n), frag, dep, moved)
+            frag, dep, moved = _block_loop(dev, n, t2, shift, frag, dep, moved)
+            frag, dep, moved = _block_loop(dev, n, t2, mean, frag, dep, moved)
+            return r + 1, any_move, frag, dep, moved
+
+        _, _, frag, dep, moved = dr.while_loop((dr.zeros(I32, n), dr.full(dev.Bool, True, n), frag, dep, moved),
+                                               lambda r, go, *_: go & (r < max_rounds), round_)
+        return k + 1, frag, dep, moved
+
+    _, frag, dep, moved = dr.while_loop((dr.zeros(I32, n), frag, dep, moved), lambda k, *_: k < nb - 1,
+                                        lambda k, *st: layer(k, *st))
+
+    def store(j, frag):
+        dr.scatter(slot_frag, frag[j], address(j))
+        return (frag,)
+
+    _block_loop(dev, n, L * t2, store, frag)
+    dr.eval(slot_frag)
+    return slot_frag
+
+
+def _texel(dev, x, y, s: int, t):
+    """:func:`methods.layered_pvs.packing._texel` for lanes (x, y) and slot ``s``: (tx, ty, stored)."""
+    dr, I32, U = dev.dr, dev.Int32, dev.UInt32
+    tile, full_layers, height = t["tile"], t["full_layers"], t["height"]
+    if s < full_layers:
+        return x, y + s * height, dr.full(dev.Bool, True, dr.width(x))
+    bi = U((y // tile) * t["bx_count"] + x // tile)
+    j = s - full_layers
+    count = dr.gather(I32, t["block_counts"], bi)
+    if t["layer_first"]:
+        index = dr.gather(I32, t["layer_index"], bi + min(j, t["lt"] - 1) * t["blocks"])
+        stored = (j < count) & (index >= 0)
+    else:
+        index = dr.gather(I32, t["first_index"], bi) + j
+        stored = j < count
+    index = dr.select(stored, index, 0)
+    tx = (index % t["tiles_in_row"]) * tile + x % tile
+    ty = full_layers * height + (index // t["tiles_in_row"]) * tile + y % tile
+    return dr.select(stored, tx, 0), dr.select(stored, ty, 0), stored
+
+
+def pack_layers(dev, depth: np.ndarray, valid: np.ndarray, colour: np.ndarray, tile: int, full_layers: int,
+                order: str, relocation: bool = True, fill: bool = True, max_rounds: int = 64,
+                fill_rounds: int | None = None):
+    """The server's pack stage (§4.1.3-§4.1.5) on the device: relocation (Algorithm 2, with ``relocation``),
+    block counts, layout, packed texture and mask (Fig. 4.7; :func:`.packing.pack`), colour filling (§4.1.5, with
+    ``fill``). ``depth`` (L, H, W) float, ``valid`` (L, H, W), ``colour`` (L, H, W, 3) uint8 per layer go up once;
+    the block counts come back for the layout (prefix sums on the host, small), its tables go up, and the texture
+    and mask come back once. Returns (texture (rows, W, 3) uint8, mask (rows, W) int8, block counts (By, Bx)
+    int64, layout, fragments relocated): :mod:`.packing`'s results."""
+    from methods.layered_pvs import packing
+    from methods.layered_pvs.codecs import ANY
+
+    dr, I32, U, F32, F64 = dev.dr, dev.Int32, dev.UInt32, dev.Float, dev.Float64
+    U8 = _uint8(dev)
+    L, H, W = np.shape(valid)
+    hw, t2 = H * W, tile * tile
+    by_count, bx_count = H // tile, W // tile
+    v = dev.to_device(np.ascontiguousarray(valid, np.bool_).reshape(-1), dev.Bool)
+    slot = I32(dr.arange(U, L * hw) // hw)
+    slot_frag = dr.select(v, slot, -1)
+    if relocation:
+        t = dev.to_device(np.ascontiguousarray(depth, np.float32).reshape(-1), F32)
+        slot_depth = dr.select(v, F64(t), dr.inf)
+        dr.eval(slot_frag, slot_depth)
+        slot_frag = relocate_slots(dev, slot_frag, slot_depth, (L, H, W), tile, max_rounds)
+    relocated = int(dr.count((slot_frag >= 0) & (slot_frag != slot))[0])
+    # Block counts: tiles per block beyond the full layers.
+    blocks = dr.arange(U, by_count * bx_count)
+    pix = _block_lanes(dev, blocks, tile, bx_count, W)
+    used = dr.block_reduce(dr.ReduceOp.Max, _used_slots(dev, slot_frag, pix, L, hw), t2)
+    counts = dev.to_host(dr.maximum(used - full_layers, 0), np.int64).reshape(by_count, bx_count)
+    layout = packing.make_layout(counts, W, H, tile, full_layers, order)
+    address = packing._address(layout)
+    up = lambda a: dev.to_device(np.ascontiguousarray(a, np.int32).reshape(-1), I32)  # noqa: E731
+    tables = {"tile": tile, "full_layers": full_layers, "height": H, "bx_count": bx_count,
+              "blocks": by_count * bx_count, "layer_first": order == "layer", "layer_index": up(address[4]),
+              "lt": int(address[4].shape[0]), "first_index": up(address[5]), "block_counts": up(address[6]),
+              "tiles_in_row": layout.tiles_in_row}
+    rows = layout.texture_height
+    if rows == 0:  # no full layer and no tile: nothing to store (no slot is occupied)
+        return np.zeros((0, W, 3), np.uint8), np.zeros((0, W), np.int8), counts, layout, relocated
+    # The packed texture: every pixel's slots at their texels (Algorithm 4.1), the slot's fragment's colour.
+    col = dev.to_device(np.ascontiguousarray(colour, np.uint8).reshape(-1), U8)
+    p = dr.arange(U, hw)
+    y, x = I32(p // W), I32(p % W)
+    frag = [dr.gather(I32, slot_frag, p + s * hw) for s in range(L)]
+    last = dr.full(I32, -1, hw)
+    for s in range(L):
+        last = dr.select(frag[s] >= 0, s, last)
+    tex = [dr.zeros(F32, rows * W) for _ in range(3)]
+    mask = dr.full(I32, int(ANY), rows * W)
+    have_tile = dr.zeros(dev.Bool, (rows // tile) * bx_count)
+    bad = []
+    for s in range(L):
+        tx, ty, stored = _texel(dev, x, y, s, tables)
+        occ = frag[s] >= 0
+        bad.append(occ & ~stored)
+        texel = U(ty * W + tx)
+        src = (U(dr.maximum(frag[s], 0)) * hw + p) * 3
+        for c in range(3):
+            dr.scatter(tex[c], dr.select(occ, F32(dr.gather(U8, col, src + c, occ)), 0.0), texel, stored)
+        dr.scatter(mask, dr.select(occ, 1, dr.select(s < last, 0, int(ANY))), texel, stored)
+        dr.scatter(have_tile, True, U((ty // tile) * bx_count + tx // tile), stored & occ)
+    dr.eval(*tex, mask, have_tile, *bad)
+    for s in range(L):
+        if dr.any(bad[s])[0]:
+            raise ValueError(f"slot {s} holds fragments in blocks whose count excludes it")
+    if fill:
+        tex = _colour_fill(dev, tex, mask == 1, have_tile, rows, W, tile, int(fill_rounds or 2 * tile))
+    out = dr.zeros(U8, rows * W * 3)
+    q = dr.arange(U, rows * W) * 3
+    for c in range(3):
+        dr.scatter(out, U8(dr.clip(dr.round(tex[c]), 0.0, 255.0)), q + c)
+    texture = dev.to_host(out).reshape(rows, W, 3)
+    mask_host = dev.to_host(mask, np.int8).reshape(rows, W)
+    return texture, mask_host, counts, layout, relocated
+
+
+def _colour_fill(dev, tex, have, have_tile, rows: int, width: int, tile: int, rounds: int):
+    """:func:`methods.layered_pvs.packing.colour_fill`'s rounds on the float32 planes ``tex`` (``have``: the texels
+    that hold a fragment), a lane per tile that holds a fragment and an empty texel: the tile in local memory, its
+    rounds as symbolic loops over its texels in the numba pass's order (sums of the have-neighbours up, down, left,
+    right in float32)."""
+    dr, I32, U, F32 = dev.dr, dev.Int32, dev.UInt32, dev.Float
+    t2 = tile * tile
+    bx_count = width // tile
+    q = dr.arange(U, rows * width)
+    tile_of = (q // width // tile) * bx_count + (q % width) // tile
+    empty_tile = dr.zeros(dev.Bool, (rows // tile) * bx_count)
+    dr.scatter(empty_tile, True, tile_of, ~have)
+    work = dr.compress(have_tile & empty_tile)
+    n = dr.width(work)
+    if n == 0:
+        return tex
+    corner = U(work // bx_count) * (tile * width) + U(work % bx_count) * tile
+
+    def address(i):
+        return corner + (i // tile) * width + i % tile
+
+    col = [dr.alloc_local(F32, t2) for _ in range(3)]
+    avg = [dr.alloc_local(F32, t2) for _ in range(3)]
+    got, new = dr.alloc_local(I32, t2), dr.alloc_local(I32, t2)
+
+    def load(i, r, g, b, got):
+        for loc, plane in zip((r, g, b), tex):
+            loc[i] = dr.gather(F32, plane, address(i))
+        got[i] = I32(dr.gather(dev.Bool, have, address(i)))
+        return r, g, b, got
+
+    col[0], col[1], col[2], got = _block_loop(dev, n, t2, load, *col, got)
+
+    def grow(i, grew, r, g, b, ar, ag, ab, got, new):
+        sums = [dr.zeros(F32, n) for _ in range(3)]
+        count = dr.zeros(F32, n)
+        for dy, dx in _NEIGHBOURS:
+            inside, j = _neighbour(dev, i, tile, dy, dx)
+            ok = inside & (got[j] != 0)
+            sums = [dr.select(ok, sc + loc[j], sc) for sc, loc in zip(sums, (r, g, b))]
+            count = dr.select(ok, count + 1.0, count)
+        fresh = (got[i] == 0) & (count > 0)
+        new[i] = I32(fresh)
+        for loc, sc in zip((ar, ag, ab), sums):
+            loc[i] = sc / dr.maximum(count, 1.0)
+        return grew | fresh, r, g, b, ar, ag, ab, got, new
+
+    def apply(i, r, g, b, ar, ag, ab, got, new):
+        fresh = new[i] != 0
+        for loc, a in zip((r, g, b), (ar, ag, ab)):
+            loc[i] = dr.select(fresh, a[i], loc[i])
+        got[i] = dr.select(fresh, 1, got[i])
+        return r, g, b, ar, ag, ab, got, new
+
+    def round_(k, go, *st):
+        grew, *st = _block_loop(dev, n, t2, grow, dr.zeros(dev.Bool, n), *st)
+        st = _block_loop(dev, n, t2, apply, *st)
+        return (k + 1, grew) + tuple(st)
+
+    out = dr.while_loop((dr.zeros(I32, n), dr.full(dev.Bool, True, n), *col, *avg, got, new),
+                        lambda k, go, *_: go & (k < rounds), round_)
+    col = out[2:5]
+
+    def store(i, r, g, b):
+        for loc, plane in zip((r, g, b), tex):
+            dr.scatter(plane, loc[i], address(i))
+        return r, g, b
+
+    _block_loop(dev, n, t2, store, *col)
+    dr.eval(*tex)
+    return tex

@@ -214,16 +214,9 @@ class LayeredPVS(Method):
 
         with ctx.stage("pack", place="server") as sg:
             valid = layers.valid
-            if p["relocation"]:
-                slot_of = packing.relocate(layers.t, valid, tile)
-            else:
-                slot_of = packing.identity_slots(valid)
-            slot_colour, occupied = packing.to_slots(colour, valid, slot_of)
-            counts = np.maximum(packing.block_layer_counts(occupied, tile) - F, 0)
-            layout = packing.make_layout(counts, view.width, view.height, tile, F, p["order"])
-            tex, mask = packing.pack(slot_colour, occupied, layout)
-            if p["colour_fill"]:
-                tex = packing.colour_fill(tex, mask == 1, tile)
+            tex, mask, counts, layout, relocated = packing.pack_stage(
+                layers.t, valid, colour, tile, F, p["order"], bool(p["relocation"]), bool(p["colour_fill"]),
+                device=getattr(ctx.tracer, "device", None))
             sg.pixels = tex.shape[0] * tex.shape[1]
 
         parts = {}
@@ -289,7 +282,7 @@ class LayeredPVS(Method):
                    fragments=int(valid.sum()), fragments_per_pixel=float(valid.sum()) / (view.width * view.height),
                    layers_used=int(valid.any(axis=(1, 2)).sum()),
                    depth_overflow_pixels=int(valid[-1].sum()), texture_rows=int(tex.shape[0]), tiles=layout.tiles,
-                   relocated_fragments=int((slot_of[valid] != np.nonzero(valid)[0]).sum()), key=int(key))
+                   relocated_fragments=relocated, key=int(key))
 
     # ------------------------------------------------------------------------------------------ client
 

@@ -433,6 +433,31 @@ def relocate_back_reference(slot_colour: np.ndarray, slot_mask: np.ndarray, coun
     return out, valid
 
 
+# ------------------------------------------------------------------------------------------ the server's stage
+
+def pack_stage(depth: np.ndarray, valid: np.ndarray, colour: np.ndarray, tile: int, full_layers: int, order: str,
+               relocation: bool = True, fill: bool = True, device=None):
+    """The server's ``pack`` stage on peeled layers (``depth``, ``valid`` (L, H, W); ``colour`` (L, H, W, 3) uint8):
+    relocation (Algorithm 2) or identity slots, block counts beyond the ``full_layers``, the layout, the packed
+    texture and mask (Fig. 4.7, §4.5.2), colour filling (§4.1.5). On a Dr.Jit ``device`` (a Mitsuba tracer's) the
+    same results from its kernels (:func:`methods.layered_pvs.device.pack_layers`); else these compiled passes.
+    Returns (texture (rows, W, 3) uint8, mask (rows, W) int8, block counts (By, Bx), layout, fragments
+    relocated)."""
+    if device is not None:
+        from methods.layered_pvs import device as kernels
+
+        return kernels.pack_layers(device, depth, valid, colour, tile, full_layers, order, relocation, fill)
+    slot_of = relocate(depth, valid, tile) if relocation else identity_slots(valid)
+    relocated = int((slot_of[valid] != np.nonzero(valid)[0]).sum())
+    slot_colour, occupied = to_slots(colour, valid, slot_of)
+    counts = np.maximum(block_layer_counts(occupied, tile) - full_layers, 0)
+    layout = make_layout(counts, valid.shape[2], valid.shape[1], tile, full_layers, order)
+    tex, mask = pack(slot_colour, occupied, layout)
+    if fill:
+        tex = colour_fill(tex, mask == 1, tile)
+    return tex, mask, counts, layout, relocated
+
+
 # ------------------------------------------------------------------------------------------ colour filling
 
 def colour_fill(tex: np.ndarray, filled: np.ndarray, tile: int, max_rounds: int | None = None) -> np.ndarray:

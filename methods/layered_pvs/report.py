@@ -268,7 +268,9 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
             html.append(f"<p>{esc(goal)}</p>")
         if bench.get("devices"):
             html.append(f"<p>svgf_host_ms / svgf_&lt;device&gt;_ms: the layered SVGF on each row's update, the numba "
-                        f"kernel and the Dr.Jit kernel on {esc(', '.join(bench['devices']))} (copies included).</p>")
+                        f"kernel and the Dr.Jit kernel on {esc(', '.join(bench['devices']))} (copies included); "
+                        f"pack_host_ms / pack_&lt;device&gt;_ms: the pack stage (relocation, packing, colour "
+                        f"filling) likewise.</p>")
         for key in ("server", "codecs", "client"):
             if key in bench:
                 html.append(f"<p>{esc(key)}</p>" + table_html(pd.DataFrame(bench[key])))

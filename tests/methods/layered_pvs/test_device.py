@@ -74,3 +74,119 @@ def test02_denoise_fragments_on_a_device_counts_its_copies(drjit_device, backend
     got = sv.denoise_fragments(view, layers, frag, illum, m1, m2, spp=2, iterations=3, device=dev)
     assert dev.counters["bytes_to_host"] - before == valid.size * 3 * 8      # the filtered grid, once
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)              # both rounded to float32
+
+
+# ------------------------------------------------------------------------------------------ packing on the device
+
+def _host_pack(depth, valid, colour, tile, full_layers, order, relocation, fill, max_rounds=64):
+    """The pack stage's host passes (methods/layered_pvs/packing.py), as the method runs them on Embree."""
+    from methods.layered_pvs import packing
+
+    slot_of = packing.relocate(depth, valid, tile, max_rounds) if relocation else packing.identity_slots(valid)
+    slot_colour, occupied = packing.to_slots(colour, valid, slot_of)
+    counts = np.maximum(packing.block_layer_counts(occupied, tile) - full_layers, 0)
+    layout = packing.make_layout(counts, valid.shape[2], valid.shape[1], tile, full_layers, order)
+    tex, mask = packing.pack(slot_colour, occupied, layout)
+    if fill:
+        tex = packing.colour_fill(tex, mask == 1, tile)
+    return tex, mask, counts, int((slot_of[valid] != np.nonzero(valid)[0]).sum())
+
+
+def _surfaces(seed, L=4, h=24, w=32):
+    """Peeled layers of four surfaces (depths 1-4, each present in patches), so that a pixel's k-th fragment lies on
+    different surfaces across a block and relocation has fragments to move; one 8x8 block empty, one block deeper
+    than the layer budget would allow if every surface were present, colours random."""
+    rng = np.random.default_rng(seed)
+    present = rng.random((4, h // 4, w // 4)) < 0.55
+    present = present.repeat(4, 1).repeat(4, 2) & (rng.random((4, h, w)) < 0.93)
+    present[:, :8, :8] = False
+    depth_of = (np.arange(1, 5)[:, None, None] + 0.2 * rng.random((4, h, w))).astype(np.float32)
+    order = np.argsort(np.where(present, depth_of, np.inf), axis=0, kind="stable")
+    sorted_depth = np.take_along_axis(np.where(present, depth_of, np.inf), order, axis=0)[:L]
+    valid = np.isfinite(sorted_depth)
+    colour = rng.integers(0, 256, (L, h, w, 3)).astype(np.uint8)
+    return np.where(valid, sorted_depth, np.inf).astype(np.float32), valid, colour
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("order", ["block", "layer"])
+@pytest.mark.parametrize("full_layers, relocation, fill", [(1, True, True), (0, True, True), (2, False, True),
+                                                           (1, True, False)])
+def test03_the_device_pack_stage_gives_the_host_passes_texture_mask_and_counts(drjit_device, backend, order,
+                                                                               full_layers, relocation, fill):
+    from methods.layered_pvs.device import pack_layers
+
+    depth, valid, colour = _surfaces(7 + full_layers)
+    want = _host_pack(depth, valid, colour, 8, full_layers, order, relocation, fill)
+    tex, mask, counts, layout, relocated = pack_layers(drjit_device(backend), depth, valid, colour, 8, full_layers,
+                                                       order, relocation, fill)
+    assert tex.dtype == np.uint8 and mask.dtype == np.int8 and tex.shape == want[0].shape
+    assert np.array_equal(counts, want[2]) and layout.tiles == int(want[2].sum())
+    assert relocated == want[3] and (relocated > 0) == relocation          # relocation moved fragments here
+    assert np.array_equal(mask, want[1])
+    assert np.array_equal(tex, want[0])                                   # float32 sums in the host's order
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test04_device_relocation_stops_after_max_rounds_as_the_host_pass_does(drjit_device, backend):
+    from methods.layered_pvs.device import pack_layers
+
+    # Fragments move a pixel further each round: 1, 2 and 3 rounds leave fewer moved than 64 (the host's counts
+    # differ), and the device stops where the host pass does.
+    depth, valid, colour = _surfaces(4)
+    dev = drjit_device(backend)
+    moved = []
+    for rounds in (1, 2, 3, 64):
+        want = _host_pack(depth, valid, colour, 8, 1, "block", True, True, max_rounds=rounds)
+        got = pack_layers(dev, depth, valid, colour, 8, 1, "block", True, True, max_rounds=rounds)
+        assert got[4] == want[3] and np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        moved.append(got[4])
+    assert moved == sorted(set(moved))     # every further round moved more
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test05_empty_layers_pack_on_the_device_as_on_the_host(drjit_device, backend):
+    from methods.layered_pvs.device import pack_layers
+
+    dev = drjit_device(backend)
+    valid = np.zeros((3, 16, 16), bool)
+    depth = np.full(valid.shape, np.inf, np.float32)
+    colour = np.zeros(valid.shape + (3,), np.uint8)
+    # Nothing at all and no full layer: an empty texture.
+    tex, mask, counts, layout, relocated = pack_layers(dev, depth, valid, colour, 8, 0, "block")
+    assert tex.shape == (0, 16, 3) and mask.shape == (0, 16) and not counts.any() and relocated == 0
+    # One full layer, every tile of the others empty (test_packing test04): no tile.
+    valid[0] = True
+    depth[0] = 2.0
+    colour[0] = 90
+    want = _host_pack(depth, valid, colour, 8, 1, "layer", True, True)
+    got = pack_layers(dev, depth, valid, colour, 8, 1, "layer")
+    assert got[3].tiles == 0 and np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test06_the_server_packs_on_the_device_of_a_drjit_tracer(backend, monkeypatch):
+    from methods.layered_pvs import bench, device
+    from suite.harness import runner
+
+    scene = runner.load_scene("living_room")
+    tracer = runner.make_tracer(backend, scene)
+    calls, original = [], device.pack_layers
+
+    def spy(dev, *args, **kwargs):
+        out = original(dev, *args, **kwargs)
+        calls.append((args, out))
+        return out
+
+    monkeypatch.setattr(device, "pack_layers", spy)
+    params = {**bench.DEFAULT_PARAMS, "layers": 3}
+    before = tracer.device.counters["bytes_to_host"]
+    ctx, _, _, _ = bench.one_update(scene, tracer, params, (64, 36), 0.5, 0.6)
+    assert len(calls) == 1
+    (depth, valid, colour, tile, full_layers, order, relocation, fill), (tex, mask, counts, _, relocated) = calls[0]
+    want = _host_pack(depth, valid, colour, tile, full_layers, order, relocation, fill)
+    assert np.array_equal(tex, want[0]) and np.array_equal(mask, want[1]) and np.array_equal(counts, want[2])
+    assert ctx.outputs["relocated_fragments"] == relocated == want[3]
+    assert ctx.outputs["tiles"] == int(counts.sum()) and ctx.outputs["texture_rows"] == tex.shape[0]
+    # The texture and mask came back for the codecs (with the block counts and the SVGF's grid).
+    assert tracer.device.counters["bytes_to_host"] - before >= tex.nbytes + mask.nbytes + counts.size * 4
