@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from methods.layered_pvs.codecs import ANY
@@ -23,16 +24,15 @@ _compiled = None
 
 
 def _passes() -> dict:
-    """The compiled passes (numba, on first use; cached on disk). The texel helper is compiled first: the passes
-    that call it are typed against the compiled version."""
-    global _compiled, _texel
+    """The compiled passes (numba, on first use; cached on disk). The texel helpers are compiled first: the passes
+    that call them are typed against the compiled versions."""
+    global _compiled, _texel, _tile_of
     if _compiled is None:
-        import numba
-
         j = numba.njit(cache=True, nogil=True)
+        _tile_of = j(_tile_of)
         _texel = j(_texel)
         _compiled = {f.__name__: j(f) for f in (_relocate_pass, _pack_pass, _fetch_pass, _unpack_pass,
-                                                _relocate_back_pass, _fill_pass)}
+                                                _relocate_back_pass, _fill_pass, _to_slots_pass)}
     return _compiled
 
 
@@ -161,7 +161,30 @@ def identity_slots(valid: np.ndarray) -> np.ndarray:
 
 
 def to_slots(values: np.ndarray, valid: np.ndarray, slot_of: np.ndarray):
-    """Scatters per-fragment ``values`` (L, H, W, ...) into slot order; returns (slot values, slot occupied)."""
+    """Scatters per-fragment ``values`` (L, H, W, ...) into slot order; returns (slot values, slot occupied). One
+    compiled pass over the fragments (:func:`_to_slots_pass`)."""
+    L, h, w = valid.shape
+    flat = np.ascontiguousarray(values).reshape(L, h * w, -1)
+    out = np.zeros_like(flat)
+    occ = np.zeros((L, h * w), bool)
+    _passes()["_to_slots_pass"](flat, np.ascontiguousarray(valid, np.bool_).reshape(L, -1),
+                                np.ascontiguousarray(slot_of, np.int64).reshape(L, -1), out, occ)
+    return out.reshape(np.shape(values)), occ.reshape(L, h, w)
+
+
+def _to_slots_pass(values, valid, slot_of, out, occ):
+    L, n, c = values.shape
+    for k in range(L):
+        for i in range(n):
+            if valid[k, i]:
+                s = slot_of[k, i]
+                occ[s, i] = True
+                for j in range(c):
+                    out[s, i, j] = values[k, i, j]
+
+
+def to_slots_reference(values: np.ndarray, valid: np.ndarray, slot_of: np.ndarray):
+    """:func:`to_slots` as numpy fancy indexing (the reference its compiled pass is tested against)."""
     L, h, w = valid.shape
     out = np.zeros_like(values)
     occ = np.zeros((L, h, w), bool)
@@ -246,8 +269,9 @@ def slot_texel(layout: TileLayout, x: np.ndarray, y: np.ndarray, slot: np.ndarra
 
 def pack(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: TileLayout):
     """Packed texture (Fig. 4.7) and its ternary pixel mask (§4.5.2): 1 = a fragment, 0 = an empty slot before
-    the pixel's last fragment, ANY = after it, or texels no slot maps to. One compiled pass over the slots'
-    pixels, each stored slot at its :func:`slot_texel` address (the bits of :func:`pack_reference`)."""
+    the pixel's last fragment, ANY = after it, or texels no slot maps to. One compiled pass: the full layers row by
+    row, then each stored tile copied to its :func:`slot_texel` address, looked up once per tile (the bits of
+    :func:`pack_reference`)."""
     L, h, w = slot_occupied.shape
     tex = np.zeros((layout.texture_height, w, 3), np.uint8)
     mask = np.full((layout.texture_height, w), ANY, np.int8)
@@ -283,11 +307,19 @@ def _address(layout: TileLayout) -> tuple:
 
 def _texel(x, y, s, address):
     """:func:`slot_texel` for one pixel and slot: (tx, ty, stored), (0, 0, False) where the slot is not stored."""
-    t, full_layers, height, layer_first, layer_index, first_index, block_counts, tiles_in_row = address
+    t, full_layers, height = address[0], address[1], address[2]
     if s < full_layers:
         return x, s * height + y, True
-    by, bx = y // t, x // t
-    j = s - full_layers
+    tx0, ty0, stored = _tile_of(s - full_layers, y // t, x // t, address)
+    if not stored:
+        return 0, 0, False
+    return tx0 + x % t, ty0 + y % t, True
+
+
+def _tile_of(j, by, bx, address):
+    """Slot ``j`` beyond the full layers of block (by, bx): (texel column, texel row of the tile's corner, stored),
+    (0, 0, False) where the block's count excludes it. The tile passes look it up once per tile."""
+    t, full_layers, height, layer_first, layer_index, first_index, block_counts, tiles_in_row = address
     if layer_first:
         tile_index = layer_index[min(j, layer_index.shape[0] - 1), by, bx]
         stored = j < block_counts[by, bx] and tile_index >= 0
@@ -296,28 +328,43 @@ def _texel(x, y, s, address):
         stored = j < block_counts[by, bx]
     if not stored:
         return 0, 0, False
-    return (tile_index % tiles_in_row) * t + x % t, full_layers * height + (tile_index // tiles_in_row) * t + y % t, \
-        True
+    return (tile_index % tiles_in_row) * t, full_layers * height + (tile_index // tiles_in_row) * t, True
 
 
 def _pack_pass(colour, occupied, address, any_value, tex, mask):
+    """The full layers row by row, then every stored tile as a block copy (its address looked up once); returns the
+    lowest slot that holds a fragment in a block whose count excludes it (-1: none)."""
+    t, full_layers, height = address[0], address[1], address[2]
     L, h, w = occupied.shape
-    for y in range(h):
-        for x in range(w):
-            last = -1
-            for s in range(L):
+    last = np.full((h, w), -1, np.int64)
+    for s in range(L):
+        for y in range(h):
+            for x in range(w):
                 if occupied[s, y, x]:
-                    last = s
-            for s in range(L):
-                tx, ty, stored = _texel(x, y, s, address)
-                if not stored:
-                    if occupied[s, y, x]:
-                        return s
-                    continue
+                    last[y, x] = s
+    for s in range(min(full_layers, L)):
+        for y in range(h):
+            for x in range(w):
                 for c in range(3):
-                    tex[ty, tx, c] = colour[s, y, x, c]
-                mask[ty, tx] = 1 if occupied[s, y, x] else (0 if s < last else any_value)
-    return -1
+                    tex[s * height + y, x, c] = colour[s, y, x, c]
+                mask[s * height + y, x] = 1 if occupied[s, y, x] else (0 if s < last[y, x] else any_value)
+    bad = -1
+    for s in range(full_layers, L):
+        for by in range(h // t):
+            for bx in range(w // t):
+                tx0, ty0, stored = _tile_of(s - full_layers, by, bx, address)
+                for dy in range(t):
+                    y = by * t + dy
+                    for dx in range(t):
+                        x = bx * t + dx
+                        if not stored:
+                            if occupied[s, y, x] and bad < 0:
+                                bad = s
+                            continue
+                        for c in range(3):
+                            tex[ty0 + dy, tx0 + dx, c] = colour[s, y, x, c]
+                        mask[ty0 + dy, tx0 + dx] = 1 if occupied[s, y, x] else (0 if s < last[y, x] else any_value)
+    return bad
 
 
 def _fetch_pass(x, y, slot, want, address, texture, dest, out, stored):
@@ -353,7 +400,8 @@ def pack_reference(slot_colour: np.ndarray, slot_occupied: np.ndarray, layout: T
 
 def unpack(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):
     """Slot arrays back from a packed texture: (colour (L, H, W, 3), mask (L, H, W) as stored, stored (L, H, W)).
-    One compiled pass over every slot's pixels (:func:`_texel`), with the results of :func:`unpack_reference`."""
+    One compiled pass, tile by tile (each tile's address looked up once), with the results of
+    :func:`unpack_reference`."""
     h, w = layout.height, layout.width
     colour = np.zeros((layers, h, w, 3), np.uint8)
     m = np.zeros((layers, h, w), np.uint8)
@@ -364,16 +412,28 @@ def unpack(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):
 
 
 def _unpack_pass(tex, mask, address, colour, m, stored):
+    t, full_layers, height = address[0], address[1], address[2]
     L, h, w = stored.shape
-    for s in range(L):
+    for s in range(min(full_layers, L)):
         for y in range(h):
             for x in range(w):
-                tx, ty, ok = _texel(x, y, s, address)
-                if ok:
-                    stored[s, y, x] = True
-                    for c in range(3):
-                        colour[s, y, x, c] = tex[ty, tx, c]
-                    m[s, y, x] = mask[ty, tx]
+                stored[s, y, x] = True
+                for c in range(3):
+                    colour[s, y, x, c] = tex[s * height + y, x, c]
+                m[s, y, x] = mask[s * height + y, x]
+    for s in range(full_layers, L):
+        for by in range(h // t):
+            for bx in range(w // t):
+                tx0, ty0, ok = _tile_of(s - full_layers, by, bx, address)
+                if not ok:
+                    continue
+                for dy in range(t):
+                    for dx in range(t):
+                        y, x = by * t + dy, bx * t + dx
+                        stored[s, y, x] = True
+                        for c in range(3):
+                            colour[s, y, x, c] = tex[ty0 + dy, tx0 + dx, c]
+                        m[s, y, x] = mask[ty0 + dy, tx0 + dx]
 
 
 def unpack_reference(tex: np.ndarray, mask: np.ndarray, layout: TileLayout, layers: int):

@@ -179,3 +179,31 @@ def test10_compiled_relocation_back_equals_the_numpy_ranks():
         packing.relocate_back_reference(slot_colour, ranks_past, counts)
     with pytest.raises(IndexError):
         packing.relocate_back(slot_colour, ranks_past, counts)
+
+
+@pytest.mark.parametrize("trailing", [(3,), (1,), ()])
+def test11_compiled_scatter_into_slots_equals_the_numpy_fancy_indexing(trailing):
+    rng = np.random.default_rng(len(trailing))
+    _, valid, depth, _ = _layers(rng, L=5, h=32, w=24)
+    slot_of = packing.relocate(depth, valid, 8)
+    values = rng.random(valid.shape + trailing).astype(np.float32)
+    got, got_occ = packing.to_slots(values, valid, slot_of)
+    want, want_occ = packing.to_slots_reference(values, valid, slot_of)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert np.array_equal(got, want) and np.array_equal(got_occ, want_occ)
+    assert not np.array_equal(got_occ, valid)       # relocation moved fragments to other slots
+
+
+def test12_a_fragment_in_a_tile_the_block_counts_exclude_is_an_error_naming_its_slot():
+    rng = np.random.default_rng(12)
+    _, valid, depth, colour = _layers(rng, L=4, empty_block=False)
+    slot_colour, occupied = packing.to_slots(colour, valid, packing.identity_slots(valid))
+    counts = np.maximum(packing.block_layer_counts(occupied, 8) - 1, 0)
+    by, bx = np.unravel_index(np.argmax(counts), counts.shape)
+    short = counts.copy()
+    short[by, bx] -= 1                      # the block's last tiled slot is left out
+    layout = packing.make_layout(short, 24, 16, 8, 1, "block")
+    with pytest.raises(ValueError, match=f"slot {int(counts[by, bx])} holds fragments"):
+        packing.pack(slot_colour, occupied, layout)
+    with pytest.raises(ValueError, match="holds fragments"):
+        packing.pack_reference(slot_colour, occupied, layout)
