@@ -100,6 +100,8 @@ class LayeredPVS(Method):
         "texture_rows": "rows of the packed texture (full layers + tile rows)",
         "tiles": "packed tiles",
         "relocated_fragments": "fragments moved by Algorithm 2",
+        "host_device_bytes": "bytes the server's device kernels (the layered SVGF and the pack stage, on a Mitsuba "
+                             "llvm/cuda tracer) copied between host and device memory; 0 on Embree",
         "key": "1 when the update carries a full PVS and an IDR video frame",
     }
     outputs = {
@@ -202,11 +204,13 @@ class LayeredPVS(Method):
             sg.pixels = len(frag.position)
 
         shape = layers.prim.shape
+        device = getattr(ctx.tracer, "device", None)
+        copied0 = _copied_bytes(device)
         with ctx.stage("denoise", place="server") as sg:
             k, y, x = frag.index
             iters = int(p["denoise_iterations"])
             illum = server.denoise_fragments(view, layers, frag, illum, m1, m2, int(p["spp"]), iters,
-                                             device=getattr(ctx.tracer, "device", None))
+                                             device=device)
             radiance = illum * frag.albedo + frag.emission
             colour = np.zeros(shape + (3,), np.uint8)
             colour[k, y, x] = video.to_video(radiance[None].astype(np.float32), float(p["exposure"]))[0]
@@ -216,7 +220,7 @@ class LayeredPVS(Method):
             valid = layers.valid
             tex, mask, counts, layout, relocated = packing.pack_stage(
                 layers.t, valid, colour, tile, F, p["order"], bool(p["relocation"]), bool(p["colour_fill"]),
-                device=getattr(ctx.tracer, "device", None))
+                device=device)
             sg.pixels = tex.shape[0] * tex.shape[1]
 
         parts = {}
@@ -282,7 +286,7 @@ class LayeredPVS(Method):
                    fragments=int(valid.sum()), fragments_per_pixel=float(valid.sum()) / (view.width * view.height),
                    layers_used=int(valid.any(axis=(1, 2)).sum()),
                    depth_overflow_pixels=int(valid[-1].sum()), texture_rows=int(tex.shape[0]), tiles=layout.tiles,
-                   relocated_fragments=relocated, key=int(key))
+                   relocated_fragments=relocated, key=int(key), host_device_bytes=_copied_bytes(device) - copied0)
 
     # ------------------------------------------------------------------------------------------ client
 
@@ -388,6 +392,13 @@ class LayeredPVS(Method):
         st["applied"] = hd.update
         st["sizes"] = {n: len(v) for n, v in msg.parts.items()}
         return rays
+
+
+def _copied_bytes(device) -> int:
+    """Bytes a Dr.Jit device has copied between host and device memory so far (0 without one)."""
+    if device is None:
+        return 0
+    return int(device.counters["bytes_to_device"] + device.counters["bytes_to_host"])
 
 
 FAST_ROTATION_DEG_S = 60.0

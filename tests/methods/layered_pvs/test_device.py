@@ -188,5 +188,7 @@ def test06_the_server_packs_on_the_device_of_a_drjit_tracer(backend, monkeypatch
     assert np.array_equal(tex, want[0]) and np.array_equal(mask, want[1]) and np.array_equal(counts, want[2])
     assert ctx.outputs["relocated_fragments"] == relocated == want[3]
     assert ctx.outputs["tiles"] == int(counts.sum()) and ctx.outputs["texture_rows"] == tex.shape[0]
-    # The texture and mask came back for the codecs (with the block counts and the SVGF's grid).
+    # The texture and mask came back for the codecs (with the block counts and the SVGF's grid), the layers' colours
+    # went up: the update's record counts every copy.
     assert tracer.device.counters["bytes_to_host"] - before >= tex.nbytes + mask.nbytes + counts.size * 4
+    assert ctx.outputs["host_device_bytes"] >= tex.nbytes + mask.nbytes + colour.nbytes + depth.size * 4

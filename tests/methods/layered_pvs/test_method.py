@@ -47,6 +47,7 @@ def test01_static_camera_reproduces_the_server_view(world):
     pose = scene.camera.pose_at(0.5)
     server, client = LayeredPVS(dict(FAST)), LayeredPVS(dict(FAST))
     up = _update(world, server, pose)
+    assert up.outputs["host_device_bytes"] == 0         # Embree: the server's passes stay on the host
     img, out = _show(world, client, up.sent["update"], pose)
     assert out["rejected_updates"] == 0 and out["hole_pixels"] == 0 and out["unmatched_pixels"] == 0
     assert out["no_hit_pixels"] == 0       # a closed room: every pixel sees the PVS
