@@ -349,3 +349,30 @@ def test12_recorded_kernels_replay_later_frames_exactly_without_recording_again(
     assert recordings[-1] == recordings[-3] and max(recordings[-1]) <= 3, recordings
     render_gbuffer(scene, tracer, 0.3, (RES[0] // 2, RES[1] // 2), 0.25)  # another resolution: another recording
     assert dev._frozen["gbuffer"].n_recordings == recordings[-1][0] + 1
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test13_grey_and_rgb_albedo_maps_read_alike_on_device_and_host(backend):
+    """A single-channel albedo map is grey (its value in R, G and B) on both paths, beside three-channel ones, with
+    texture coordinates far outside [0, 1] (the lookup repeats)."""
+    import dataclasses
+
+    from suite.core.device import render_gbuffer
+
+    scene = load("living_room")
+    rng = np.random.default_rng(3)
+    mats = list(scene.materials)
+    for i, channels in enumerate((1, 3, 1)):
+        mats[i] = dataclasses.replace(mats[i], albedo_texture=rng.random((5 + 2 * i, 7, channels)).astype(np.float32))
+    scene = dataclasses.replace(scene, materials=mats,
+                                uvs=rng.uniform(-3.0, 3.0, (len(scene.positions), 2)).astype(np.float32))
+    tracer = make(backend, scene)
+    host = host_gbuffer.render_gbuffer(scene, tracer, 0.5, RES, device=False)
+    dev = render_gbuffer(scene, tracer, 0.5, RES).to_host()
+    grey = host.valid & np.isin(host.material, [0, 2])
+    assert grey.sum() > 50 and np.array_equal(host.albedo[grey][:, 0], host.albedo[grey][:, 2])
+    if exact(backend):
+        assert np.array_equal(dev.albedo, host.albedo)
+    else:
+        same = dev.prim == host.prim
+        np.testing.assert_allclose(dev.albedo[same], host.albedo[same], rtol=1e-5, atol=1e-6)

@@ -111,8 +111,8 @@ class Device:
     # The arrays kernels read through the device (owner, attributes): what a recording must take as its inputs.
     _KERNEL_ARRAYS = (("tables", ("vpos", "vnrm", "vuv", "faces", "face_material", "face_object", "albedo", "emission",
                                   "kind", "threshold", "face_tested")),
-                      ("tables.albedo_tex", ("offset", "width", "height", "data")),
-                      ("tables.opacity_tex", ("offset", "width", "height", "data")),
+                      ("tables.albedo_tex", ("offset", "width", "height", "stored", "data")),
+                      ("tables.opacity_tex", ("offset", "width", "height", "stored", "data")),
                       ("tracer", ("_face_table", "_first_face_by_id")),
                       ("device", ("_zero",)),
                       ("opaque_group", ("face_table",)),
@@ -622,25 +622,27 @@ class SceneTables:
 
 
 class _TextureTable:
-    """Per-material textures in one flat float32 array: offset, width, height per material (width 0: none). Lookups
-    are :func:`suite.core.gbuffer.lookup_texture` (bilinear, repeating, texel centres at +0.5, row 0 at v = 0)
-    operation for operation in float64."""
+    """Per-material textures in one flat float32 array: offset, width, height and channels per material (width 0:
+    none). Lookups are :func:`suite.core.gbuffer.lookup_texture` (bilinear, repeating, texel centres at +0.5, row 0
+    at v = 0) operation for operation in float64; a single-channel texture gives its value in every channel asked
+    for (a grey albedo map, as the host's ``_texel`` reads it)."""
 
     def __init__(self, dev: Device, textures, channels: int):
         self.dev, self.channels = dev, channels
-        offsets, widths, heights, chunks, at = [], [], [], [], 0
+        offsets, widths, heights, stored, chunks, at = [], [], [], [], [], 0
         for tex in textures:
             if tex is None:
-                offsets.append(0), widths.append(0), heights.append(0)
+                offsets.append(0), widths.append(0), heights.append(0), stored.append(1)
                 continue
             tex = np.ascontiguousarray(tex, np.float32).reshape(tex.shape[0], tex.shape[1], -1)[:, :, :channels]
-            offsets.append(at), widths.append(tex.shape[1]), heights.append(tex.shape[0])
+            offsets.append(at), widths.append(tex.shape[1]), heights.append(tex.shape[0]), stored.append(tex.shape[2])
             chunks.append(tex.reshape(-1))
             at += tex.size
         self.any = bool(chunks)
         self.offset = dev.to_device(np.array(offsets, np.uint32), dev.UInt32)
         self.width = dev.to_device(np.array(widths, np.int32), dev.Int32)
         self.height = dev.to_device(np.array(heights, np.int32), dev.Int32)
+        self.stored = dev.to_device(np.array(stored, np.uint32), dev.UInt32)   # channels kept per texel
         self.data = dev.to_device(np.concatenate(chunks) if chunks else np.zeros(1, np.float32), dev.Float)
 
     def has(self, mat, active):
@@ -668,7 +670,7 @@ class _TextureTable:
         y0i = dr.clip(I(y0m), 0, h_i - 1)
         x1i = dr.select(x0i + 1 >= w_i, 0, x0i + 1)
         y1i = dr.select(y0i + 1 >= h_i, 0, y0i + 1)
-        c = self.channels
+        c = dr.gather(U, self.stored, mat, active)
         wu = U(w_i)
 
         def texel(yi, xi, k):
@@ -677,7 +679,8 @@ class _TextureTable:
         a00, a10 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
         a01, a11 = (1.0 - fx) * fy, fx * fy
         out = []
-        for k in range(c):
+        for channel in range(self.channels):
+            k = dr.select(c > channel, U(channel), U(0))
             val = ((a00 * texel(y0i, x0i, k) + a10 * texel(y0i, x1i, k)) + a01 * texel(y1i, x0i, k)) \
                 + a11 * texel(y1i, x1i, k)
             out.append(dr.select(active, val, 0.0))

@@ -10,7 +10,7 @@ import pytest
 from methods.quake_drt import culling, direct, lights as lights_mod, primary, testscenes
 from methods.quake_drt.rng import pixel_seeds
 from suite.core.shading import SHADOW_TMAX_SCALE
-from suite.core.trace import make
+from suite.core.trace import backend_params, make
 from suite.core.trace.robust import offset_ray_origin
 
 SURFACE_FIELDS = ("valid", "prim", "u", "v", "p", "ng", "ns", "ng_view", "ns_view", "albedo", "emission", "material",
@@ -256,3 +256,30 @@ def test09_per_pixel_demodulation_equals_bincount():
     empty = pts.subset(slice(0, 0))
     assert all(_same(a, b) for a, b in zip(pipeline.demodulate(empty, il[:0], 4),
                                            pipeline.demodulate_reference(empty, il[:0], 4)))
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+def test10_on_a_drjit_tracer_the_primary_stage_takes_the_device_gbuffer_with_the_host_pipelines_bits(backend,
+                                                                                                    monkeypatch):
+    """A Mitsuba llvm/cuda tracer's primary stage traces its jittered shading rays whole and takes the device
+    G-buffer (suite.core.device) instead of the host pipeline of row chunks: the same G-buffer and samples as that
+    pipeline on the same backend (its queries through a wrapper that hides the device)."""
+    from suite.core import gbuffer
+    from suite.core.device import gbuffer as device_gbuffer
+    from suite.core.trace.recording import RecordingTracer
+
+    monkeypatch.setattr(gbuffer, "PIPELINE_MIN_PIXELS", 300)
+    calls = []
+    original = device_gbuffer.render_gbuffer
+    monkeypatch.setattr(device_gbuffer, "render_gbuffer", lambda *a, **k: calls.append(1) or original(*a, **k))
+    for scene in _scenes():
+        tracer = make(backend, scene)
+        w, h = 64, 40
+        seeds = pixel_seeds(9, w, h).reshape(-1)
+        g_dev, s_dev = primary.primary_stage(scene, tracer, 0.0, None, (w, h), seeds, jitter=True)
+        g_host, s_host = primary.primary_stage(scene, RecordingTracer(tracer), 0.0, None, (w, h), seeds, jitter=True)
+        for field in SURFACE_FIELDS:
+            assert _same(getattr(s_dev, field), getattr(s_host, field)), field
+        for field in ("position", "normal", "geo_normal", "albedo", "depth", "prim", "valid"):
+            assert _same(getattr(g_dev, field), getattr(g_host, field)), field
+    assert len(calls) == len(_scenes())
