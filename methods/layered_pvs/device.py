@@ -1,5 +1,6 @@
-"""The layered SVGF (seed 002 §4.4.1) as a Dr.Jit kernel on the run's Mitsuba variant: one code path, vectorised and
-multi-threaded on ``llvm_ad_rgb`` and on the GPU on ``cuda_ad_rgb`` (the core's device kernels, suite.core.device).
+"""The layered SVGF (seed 002 §4.4.1) and the server's pack stage (§4.1.3-§4.1.5) as Dr.Jit kernels on the run's
+Mitsuba variant: one code path, vectorised and multi-threaded on ``llvm_ad_rgb`` and on the GPU on ``cuda_ad_rgb``
+(the core's device kernels, suite.core.device).
 
 :func:`svgf_passes` is :func:`methods.layered_pvs.server._svgf_passes` (the numba kernel Embree runs): the same
 grids in the kernel's (H, W, L[, 3]) layout, one lane per (pixel, layer) slot, every float64 operation in the numba
@@ -7,6 +8,9 @@ kernel's order; Dr.Jit's ``exp`` (and ``pow`` for a fractional normal exponent) 
 rounding (the stage rounds the result to float32; tests/methods/layered_pvs/test_device.py compares them). The
 grids go up once per update and the filtered illumination comes back once (counted copies); between the passes
 everything stays on the device, and every pass is the same compiled kernel (its step is read from memory).
+
+:func:`pack_layers` is :func:`methods.layered_pvs.packing.pack_stage`'s host passes (relocation, packing, colour
+filling) with their results bit for bit (below, "packing").
 """
 from __future__ import annotations
 

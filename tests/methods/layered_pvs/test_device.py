@@ -1,6 +1,7 @@
-"""The layered SVGF (§4.4.1) as a Dr.Jit kernel (methods/layered_pvs/device.py): the numba kernel's values, to
-rounding, on every Dr.Jit variant (llvm_ad_rgb here, cuda_ad_rgb where a GPU is usable), and the server's denoise
-stage takes it on such a tracer."""
+"""The layered SVGF (§4.4.1) and the pack stage (§4.1.3-§4.1.5) as Dr.Jit kernels (methods/layered_pvs/device.py)
+on every Dr.Jit variant (llvm_ad_rgb here, cuda_ad_rgb where a GPU is usable): the SVGF gives the numba kernel's
+values to rounding, the pack stage the host passes' texture, mask and block counts bit for bit, and the server
+takes both on such a tracer."""
 from types import SimpleNamespace
 
 import numpy as np
