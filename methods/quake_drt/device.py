@@ -81,16 +81,11 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
     bx, by = motion
     best = bx * bx + by * by
     grid = PixelGrid(dev, w, h)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            t = grid.tap(dy, dx)
-            if t is None:
-                continue
-            j, inside = t
-            qx, qy = dr.gather(F64, motion[0], j, inside), dr.gather(F64, motion[1], j, inside)
-            ln = qx * qx + qy * qy
-            longer = inside & (ln > best)
-            best, bx, by = dr.select(longer, ln, best), dr.select(longer, qx, bx), dr.select(longer, qy, by)
+    for _, _, j, inside in grid.window(1):
+        qx, qy = dr.gather(F64, motion[0], j, inside), dr.gather(F64, motion[1], j, inside)
+        ln = qx * qx + qy * qy
+        longer = inside & (ln > best)
+        best, bx, by = dr.select(longer, ln, best), dr.select(longer, qx, bx), dr.select(longer, qy, by)
     px, py = F64(x) + 0.5 + bx, F64(y) + 0.5 + by
     usable = (px >= 1.0) & (px < w - 1.0) & (py >= 1.0) & (py < h - 1.0)
     tx, ty = px - 0.5, py - 0.5
@@ -243,29 +238,17 @@ def gradient_atrous(dev, grad, w: int, h: int, s):
     for it in range(int(s.gradient_iterations)):
         step = 1 << it
         sig = dr.zeros(F, cw * ch)  # denoise.gaussian3x3(var, float32), then doubled
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                t = cells.tap(dy, dx)
-                if t is None:  # outside for every cell: adds nothing
-                    continue
-                j, inside = t
-                sig = sig + dr.gather(F, var, j, inside) * F((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
+        for dy, dx, j, inside in cells.window(1):  # offsets outside every cell add nothing
+            sig = sig + dr.gather(F, var, j, inside) * F((0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5))
         sig = dr.maximum(F(float(s.gradient_sigma)) * (F(2.0) * sig), F(1e-8))
         acc, wsum, vacc = list(val), dr.full(F, 1.0, cw * ch), var
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                if dx == 0 and dy == 0:
-                    continue
-                t = cells.tap(dy * step, dx * step)
-                if t is None:
-                    continue
-                j, inside = t
-                lq = dr.gather(F, lum, j, inside)
-                d = lum - lq
-                wq = dr.select(inside, F(1.0), F(0.0)) * dr.exp(-(d * d) / sig)
-                acc = [a + dr.gather(F, v, j, inside) * wq for a, v in zip(acc, val)]
-                vacc = vacc + dr.gather(F, var, j, inside) * wq * wq
-                wsum = wsum + wq
+        for dy, dx, j, inside in cells.window(1, step, centre=False):
+            lq = dr.gather(F, lum, j, inside)
+            d = lum - lq
+            wq = dr.select(inside, F(1.0), F(0.0)) * dr.exp(-(d * d) / sig)
+            acc = [a + dr.gather(F, v, j, inside) * wq for a, v in zip(acc, val)]
+            vacc = vacc + dr.gather(F, var, j, inside) * wq * wq
+            wsum = wsum + wq
         val = [a / wsum for a in acc]
         var = vacc / (wsum * wsum)
         dr.eval(*val, var)

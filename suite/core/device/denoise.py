@@ -60,6 +60,18 @@ class PixelGrid:
         inside = (yy >= 0) & (yy < self.h) & (xx >= 0) & (xx < self.w)
         return self.dev.UInt32(self.dev.dr.select(inside, yy * self.w + xx, 0)), inside
 
+    def window(self, radius: int, step=1, centre: bool = True):
+        """The taps of the (2 radius + 1)^2 window at spacing ``step`` (an int, or an Int32 read from memory), in
+        row-major order: ``(dy, dx, index, inside)``, without the offsets no pixel's tap reaches (:meth:`tap`) and,
+        unless ``centre``, without (0, 0)."""
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                if dy == 0 and dx == 0 and not centre:
+                    continue
+                t = self.tap(dy * step, dx * step)
+                if t is not None:
+                    yield (dy, dx) + t
+
 
 def _pow(dev, x, e: float):
     """:func:`suite.core.denoise._pow` (repeated squaring for a whole exponent in [0, 4096])."""
@@ -107,14 +119,9 @@ def _gaussian3x3(dev, grid: PixelGrid, v):
     """:func:`suite.core.denoise.gaussian3x3` in float64, row-major tap order, zero outside the image."""
     dr, F64 = dev.dr, dev.Float64
     g = dr.zeros(F64, grid.w * grid.h)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            t = grid.tap(dy, dx)
-            if t is None:
-                continue
-            q, inside = t
-            wgt = (0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5)
-            g = g + dr.select(inside, F64(dr.gather(dev.Float, v, q, inside)) * wgt, 0.0)
+    for dy, dx, q, inside in grid.window(1):
+        wgt = (0.25 if dx == 0 else 0.125) * (1.0 if dy == 0 else 0.5)
+        g = g + dr.select(inside, F64(dr.gather(dev.Float, v, q, inside)) * wgt, 0.0)
     return g
 
 
@@ -138,23 +145,19 @@ def atrous_pass(frame: DeviceFrame, c, v, fw, step: int, s: AtrousSettings, grid
     a = dev.Vector3d(c) * k00
     va = F64(v) * k00 * k00
     ws = dr.full(F64, k00, grid.w * grid.h)
-    for dy in range(-r, r + 1):
-        for dx in range(-r, r + 1):
-            if dx == 0 and dy == 0:
-                continue
-            q, inside = grid.tap(dy * step_i, dx * step_i)
-            cq = dr.gather(dev.Vector3f, c, q, inside)
-            vq = dr.gather(F, v, q, inside)
-            tap = inside & valid & dr.gather(dev.Bool, valid, q, inside)
-            wl = dr.abs(lum - _lum64(dev, cq)) / phi_l
-            wz = F64(dr.abs(z - dr.gather(F, z, q, inside))) / (depth_scale * math.sqrt(float(dx * dx + dy * dy)))
-            dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
-            wq = dr.exp(-wl - wz) * _pow(dev, dot, float(s.phi_normal)) * kern[abs(dx)] * kern[abs(dy)]
-            wq = dr.select(tap, wq, 0.0)
-            # taps outside the image are skipped; invalid ones inside add colour * 0 (the host kernel's sums)
-            a = dr.select(inside, a + dev.Vector3d(cq) * wq, a)
-            va = dr.select(inside, va + F64(vq) * wq * wq, va)
-            ws = dr.select(inside, ws + wq, ws)
+    for dy, dx, q, inside in grid.window(r, step_i, centre=False):
+        cq = dr.gather(dev.Vector3f, c, q, inside)
+        vq = dr.gather(F, v, q, inside)
+        tap = inside & valid & dr.gather(dev.Bool, valid, q, inside)
+        wl = dr.abs(lum - _lum64(dev, cq)) / phi_l
+        wz = F64(dr.abs(z - dr.gather(F, z, q, inside))) / (depth_scale * math.sqrt(float(dx * dx + dy * dy)))
+        dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
+        wq = dr.exp(-wl - wz) * _pow(dev, dot, float(s.phi_normal)) * kern[abs(dx)] * kern[abs(dy)]
+        wq = dr.select(tap, wq, 0.0)
+        # taps outside the image are skipped; invalid ones inside add colour * 0 (the host kernel's sums)
+        a = dr.select(inside, a + dev.Vector3d(cq) * wq, a)
+        va = dr.select(inside, va + F64(vq) * wq * wq, va)
+        ws = dr.select(inside, ws + wq, ws)
     out_c = dev.Vector3f(a / ws)
     out_v = F(va / (ws * ws))
     dr.eval(out_c, out_v)
@@ -186,20 +189,15 @@ def spatial_variance(frame: DeviceFrame, lum, phi_normal: float = 128.0, radius:
     fw64 = F64(dr.maximum(depth_fwidth(frame, grid), F(1e-3) * z))
     size = grid.w * grid.h
     s1, s2, ws = dr.zeros(F64, size), dr.zeros(F64, size), dr.zeros(F64, size)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            t = grid.tap(dy, dx)
-            if t is None:
-                continue
-            q, inside = t
-            near = F64(dr.abs(dr.gather(F, z, q, inside) - z)) < 2.0 * fw64 * float(max(abs(dx), abs(dy), 1))
-            dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
-            ok = inside & valid & dr.gather(dev.Bool, valid, q, inside) & near
-            wq = dr.select(ok, _pow(dev, dot, float(phi_normal)), 0.0)
-            lq = F64(dr.gather(F, lum, q, inside))
-            s1 = dr.select(inside, s1 + wq * lq, s1)
-            s2 = dr.select(inside, s2 + wq * lq * lq, s2)
-            ws = dr.select(inside, ws + wq, ws)
+    for dy, dx, q, inside in grid.window(radius):
+        near = F64(dr.abs(dr.gather(F, z, q, inside) - z)) < 2.0 * fw64 * float(max(abs(dx), abs(dy), 1))
+        dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
+        ok = inside & valid & dr.gather(dev.Bool, valid, q, inside) & near
+        wq = dr.select(ok, _pow(dev, dot, float(phi_normal)), 0.0)
+        lq = F64(dr.gather(F, lum, q, inside))
+        s1 = dr.select(inside, s1 + wq * lq, s1)
+        s2 = dr.select(inside, s2 + wq * lq * lq, s2)
+        ws = dr.select(inside, ws + wq, ws)
     ws = dr.maximum(ws, 1e-12)
     m = s1 / ws
     out = F(dr.select(valid, dr.maximum(s2 / ws - m * m, 0.0), 0.0))
