@@ -143,25 +143,20 @@ def _uint8(dev):
     return importlib.import_module(dev.Float.__module__).UInt8
 
 
-def _block_lanes(dev, blocks, tile: int, bx_count: int, width: int):
-    """Lanes for the pixels of ``blocks`` (UInt32 block ids, row-major over the blocks), block after block, each
-    block's pixels row-major: the flat pixel index y * width + x of each lane."""
+def _block_layer_counts(dev, slot_frag, shape, tile: int):
+    """:func:`methods.layered_pvs.packing.block_layer_counts` of the occupied slots of ``slot_frag`` (flat (L, H, W)
+    Int32, -1 where empty): per block (row-major), 1 + the highest slot any of its pixels uses. Lanes go block after
+    block, each block's pixels row-major, so one block reduction gives the blocks' maxima."""
     dr, I32, U = dev.dr, dev.Int32, dev.UInt32
-    t2 = tile * tile
-    blk = dr.repeat(blocks, t2)
-    local = dr.tile(dr.arange(U, t2), dr.width(blocks))
-    y = I32(blk // bx_count) * tile + I32(local // tile)
-    x = I32(blk % bx_count) * tile + I32(local % tile)
-    return U(y * width + x)
-
-
-def _used_slots(dev, slot_frag, pix, L: int, hw: int):
-    """Per lane: 1 + the highest occupied slot of its pixel (0 when it has none)."""
-    dr, I32 = dev.dr, dev.Int32
+    L, H, W = shape
+    hw, t2, bx_count = H * W, tile * tile, W // tile
+    blk = dr.repeat(dr.arange(U, (H // tile) * bx_count), t2)
+    local = dr.tile(dr.arange(U, t2), (H // tile) * bx_count)
+    pix = U((I32(blk // bx_count) * tile + I32(local // tile)) * W + I32(blk % bx_count) * tile + I32(local % tile))
     used = dr.zeros(I32, dr.width(pix))
     for s in range(L):
         used = dr.select(dr.gather(I32, slot_frag, pix + s * hw) >= 0, s + 1, used)
-    return used
+    return dr.block_reduce(dr.ReduceOp.Max, used, t2)
 
 
 _NEIGHBOURS = ((-1, 0), (1, 0), (0, -1), (0, 1))  # up, down, left, right: the numba passes' order
@@ -192,8 +187,7 @@ def relocate_slots(dev, slot_frag, slot_depth, shape, tile: int, max_rounds: int
     L, H, W = shape
     hw, t2 = H * W, tile * tile
     bx_count = W // tile
-    pix = _block_lanes(dev, dr.arange(U, (H // tile) * bx_count), tile, bx_count, W)
-    n_block = dr.block_reduce(dr.ReduceOp.Max, _used_slots(dev, slot_frag, pix, L, hw), t2)
+    n_block = _block_layer_counts(dev, slot_frag, shape, tile)
     work = dr.compress(n_block >= 2)
     n = dr.width(work)
     if n == 0:
@@ -321,7 +315,7 @@ def pack_layers(dev, depth: np.ndarray, valid: np.ndarray, colour: np.ndarray, t
     dr, I32, U, F32, F64 = dev.dr, dev.Int32, dev.UInt32, dev.Float, dev.Float64
     U8 = _uint8(dev)
     L, H, W = np.shape(valid)
-    hw, t2 = H * W, tile * tile
+    hw = H * W
     by_count, bx_count = H // tile, W // tile
     v = dev.to_device(np.ascontiguousarray(valid, np.bool_).reshape(-1), dev.Bool)
     slot = I32(dr.arange(U, L * hw) // hw)
@@ -333,9 +327,7 @@ def pack_layers(dev, depth: np.ndarray, valid: np.ndarray, colour: np.ndarray, t
         slot_frag = relocate_slots(dev, slot_frag, slot_depth, (L, H, W), tile, max_rounds)
     relocated = int(dr.count((slot_frag >= 0) & (slot_frag != slot))[0])
     # Block counts: tiles per block beyond the full layers.
-    blocks = dr.arange(U, by_count * bx_count)
-    pix = _block_lanes(dev, blocks, tile, bx_count, W)
-    used = dr.block_reduce(dr.ReduceOp.Max, _used_slots(dev, slot_frag, pix, L, hw), t2)
+    used = _block_layer_counts(dev, slot_frag, (L, H, W), tile)
     counts = dev.to_host(dr.maximum(used - full_layers, 0), np.int64).reshape(by_count, bx_count)
     layout = packing.make_layout(counts, W, H, tile, full_layers, order)
     address = packing._address(layout)

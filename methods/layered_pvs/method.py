@@ -205,7 +205,7 @@ class LayeredPVS(Method):
 
         shape = layers.prim.shape
         device = getattr(ctx.tracer, "device", None)
-        copied0 = _copied_bytes(device)
+        copied0 = device.copied_bytes if device is not None else 0   # what the SVGF and the pack stage copy
         with ctx.stage("denoise", place="server") as sg:
             k, y, x = frag.index
             iters = int(p["denoise_iterations"])
@@ -286,7 +286,8 @@ class LayeredPVS(Method):
                    fragments=int(valid.sum()), fragments_per_pixel=float(valid.sum()) / (view.width * view.height),
                    layers_used=int(valid.any(axis=(1, 2)).sum()),
                    depth_overflow_pixels=int(valid[-1].sum()), texture_rows=int(tex.shape[0]), tiles=layout.tiles,
-                   relocated_fragments=relocated, key=int(key), host_device_bytes=_copied_bytes(device) - copied0)
+                   relocated_fragments=relocated, key=int(key),
+                   host_device_bytes=device.copied_bytes - copied0 if device is not None else 0)
 
     # ------------------------------------------------------------------------------------------ client
 
@@ -392,13 +393,6 @@ class LayeredPVS(Method):
         st["applied"] = hd.update
         st["sizes"] = {n: len(v) for n, v in msg.parts.items()}
         return rays
-
-
-def _copied_bytes(device) -> int:
-    """Bytes a Dr.Jit device has copied between host and device memory so far (0 without one)."""
-    if device is None:
-        return 0
-    return int(device.counters["bytes_to_device"] + device.counters["bytes_to_host"])
 
 
 FAST_ROTATION_DEG_S = 60.0

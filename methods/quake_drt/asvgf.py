@@ -194,10 +194,9 @@ class ASVGF:
     def counted_copies(self, fn):
         """Runs ``fn`` and adds what it copied between host and device memory to :attr:`copied_bytes` (the
         denoiser's stages and the pipeline's TAA on a device)."""
-        c = self.device.counters
-        before = c["bytes_to_device"] + c["bytes_to_host"]
+        before = self.device.copied_bytes
         out = fn()
-        self.copied_bytes += c["bytes_to_device"] + c["bytes_to_host"] - before
+        self.copied_bytes += self.device.copied_bytes - before
         return out
 
     # -- 2. forward projection ---------------------------------------------------------------------------

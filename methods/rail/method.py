@@ -403,7 +403,7 @@ class Rail(Method):
         p, cg = self.params, self._cg
         dev = g.device
         dr = dev.dr
-        bytes0 = dev.counters["bytes_to_device"] + dev.counters["bytes_to_host"]
+        bytes0 = dev.copied_bytes
         E = self._shown_irradiance(ctx)
         if self._device_grid is None or self._device_grid[0] is not cg or self._device_grid[1].dev is not dev:
             self._device_grid = (cg, rdev.DeviceGrid(dev, cg))
@@ -450,7 +450,7 @@ class Rail(Method):
                 "irradiance_pixels": n_pixels,
                 "records_visited_mean": visited_total / n_pixels if n_pixels else 0.0,
                 "records_visited_total": visited_total,
-                "host_device_bytes": dev.counters["bytes_to_device"] + dev.counters["bytes_to_host"] - bytes0}
+                "host_device_bytes": dev.copied_bytes - bytes0}
         return full, info
 
     def _dynamic_table(self, dev, scene):

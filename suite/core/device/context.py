@@ -204,6 +204,11 @@ class Device:
 
         return call
 
+    @property
+    def copied_bytes(self) -> int:
+        """Bytes copied between host and device memory so far, both ways (``counters``)."""
+        return int(self.counters["bytes_to_device"] + self.counters["bytes_to_host"])
+
     def arange(self, n: int):
         return self.dr.arange(self.UInt32, int(n))
 
