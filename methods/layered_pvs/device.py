@@ -18,6 +18,9 @@ import math
 
 import numpy as np
 
+from suite.core.trace.alpha import MAX_ALPHA_LAYERS
+
+UNROLL_LIGHTS = 16   # at most this many lights: DeviceLights.unrolled
 B3 = (1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16)    # the 5x5 B3-spline kernel of the numba pass
 
 
@@ -447,3 +450,239 @@ def _colour_fill(dev, tex, have, have_tile, rows: int, width: int, tile: int, ro
     _block_loop(dev, n, t2, store, *col)
     dr.eval(*tex)
     return tex
+
+
+# ------------------------------------------------------------------------------------------ path tracing
+
+class DeviceLights:
+    """:class:`methods.layered_pvs.server.LightSampler`'s lights on the device (float64): the choice's power and
+    centres (a point light's position, a triangle's centroid), its power CDF, and the point and triangle lights'
+    sampling data."""
+
+    def __init__(self, dev, lights):
+        up = dev.to_device
+        F64, V3 = dev.Float64, dev.Vector3d
+        self.count, self.n_point = len(lights.power), int(lights.n_point)
+        self.per_point = self.count <= lights.PER_POINT_LIGHTS
+        self.min_d2 = float(lights.min_d2)
+        self.power, self.centres = up(lights.power, F64), up(lights.centres, V3)
+        self.cdf, self.pmf = up(lights.cdf, F64), up(lights.pmf, F64)
+        self.cdf_last = float(lights.cdf[-1]) if self.count else 0.0
+        pad = lambda a, k: a if len(a) else np.zeros((1, k))  # noqa: E731  (a gather needs a table of one row)
+        self.point_pos, self.point_int = up(pad(lights.point_pos, 3), V3), up(pad(lights.point_int, 3), V3)
+        tri = lights.tri.reshape(-1, 9)
+        self.tri = [up(pad(tri[:, 3 * k:3 * k + 3], 3), V3) for k in range(3)]
+        self.tri_n, self.tri_l = up(pad(lights.tri_n, 3), V3), up(pad(lights.tri_l, 3), V3)
+        self.tri_area = up(lights.tri_area if len(lights.tri_area) else np.zeros(1), F64)
+        self.n_tri = len(lights.tri_area)
+        # A few lights: their data as scalars the kernel broadcasts, and the loops over them written out (per-lane
+        # gathers of float64 cost on llvm_ad_rgb about as much as the shading they feed).
+        self.unrolled = self.per_point and self.count <= UNROLL_LIGHTS
+        if self.unrolled:
+            ops = dev.opaques
+            self.s_power = ops(lights.power)
+            self.s_centres = [ops(c) for c in lights.centres]
+            self.s_point_pos = [ops(c) for c in lights.point_pos]
+            self.s_point_int = [ops(c) for c in lights.point_int]
+
+
+def _choose_light(dev, lt: DeviceLights, p, u_sel):
+    """(light index UInt32, selection probability Float64) per lane, as ``LightSampler.choose``: in proportion to the
+    irradiance bound ``power / max(d^2, min_d2)`` at the point (two symbolic loops over the lights: the total, then
+    the first light whose running sum reaches ``u * total``), or, with more than ``PER_POINT_LIGHTS`` lights, to
+    power (a binary search of the CDF)."""
+    dr, F64, U = dev.dr, dev.Float64, dev.UInt32
+    n = dr.width(u_sel)
+    last = lt.count - 1
+    if not lt.per_point:
+        x = u_sel * dev.opaque(F64, lt.cdf_last)
+        j = dr.minimum(U(dr.binary_search(0, last, lambda i: dr.gather(F64, lt.cdf, i) <= x)), last)
+        return j, dr.gather(F64, lt.pmf, j)
+    min_d2 = dev.opaque(F64, lt.min_d2)
+    if lt.unrolled:
+        ws, tot = [], None
+        for li in range(lt.count):
+            c = lt.s_centres[li]
+            dx, dy, dz = p.x - c[0], p.y - c[1], p.z - c[2]
+            ws.append(lt.s_power[li] / dr.maximum((dx * dx + dy * dy) + dz * dz, min_d2))
+            tot = ws[-1] if tot is None else tot + ws[-1]
+        x = u_sel * tot
+        acc, j, w_j, found = None, dr.full(U, last, n), ws[-1], dr.zeros(dev.Bool, n)
+        for li in range(lt.count):
+            acc = ws[li] if acc is None else acc + ws[li]
+            hit = ~found & (acc >= x)
+            j, w_j, found = dr.select(hit, U(li), j), dr.select(hit, ws[li], w_j), found | hit
+        return j, w_j / dr.maximum(tot, 1e-300)
+    count = dev.opaque(U, lt.count)
+
+    def weight(li):
+        c = dr.gather(dev.Vector3d, lt.centres, li)
+        d = p - c
+        return dr.gather(F64, lt.power, li) / dr.maximum((d.x * d.x + d.y * d.y) + d.z * d.z, min_d2)
+
+    li, tot = dr.zeros(U, n), dr.zeros(F64, n)
+    li, tot = dr.while_loop((li, tot), lambda li, tot: li < count, lambda li, tot: (li + 1, tot + weight(li)))
+    x = u_sel * tot
+    li, acc, j, found = dr.zeros(U, n), dr.zeros(F64, n), dr.full(U, last, n), dr.zeros(dev.Bool, n)
+
+    def body(li, acc, j, found):
+        acc = acc + weight(li)
+        hit = acc >= x
+        return li + 1, acc, dr.select(hit, li, j), hit
+
+    li, acc, j, found = dr.while_loop((li, acc, j, found), lambda li, acc, j, found: (li < count) & ~found, body)
+    return j, weight(j) / dr.maximum(tot, 1e-300)
+
+
+def _cosine_hemisphere(dev, n, u0, u1):
+    """A cosine-weighted direction (Vector3f) about the unit normal ``n`` (``server._cosine_hemisphere``'s frame), in
+    float32: the ray is traced in float32 anyway, and float64 sine and cosine are software routines on both
+    backends."""
+    dr, F = dev.dr, dev.Float
+    r = dr.sqrt(u0)
+    s, c = dr.sincos(2 * math.pi * u1)
+    lx, ly, lz = r * c, r * s, dr.sqrt(dr.maximum(0.0, 1.0 - u0))
+    n = dev.Vector3f(n)
+    side = dr.abs(n.x) > 0.9
+    a = dev.Vector3f(dr.select(side, 0.0, 1.0), dr.select(side, 1.0, 0.0), F(0.0))
+    t = dr.normalize(dr.cross(n, a))
+    b = dr.cross(n, t)
+    return dr.normalize(t * lx + b * ly + n * lz)
+
+
+def _light_sample(dev, lt: DeviceLights, p, j, pmf, is_point, u4, u5):
+    """(target point, weight L cos_y / (d^2 pdf) or I / (d^2 pdf), valid) per lane for light ``j`` chosen with
+    probability ``pmf`` (``LightSampler.sample``): a point light's position, or a uniform point on a triangle light
+    (``sqrt`` warp of ``u4``, ``u5``) that must face the point. The kinds a scene lacks are left out of the kernel."""
+    dr, F64, U = dev.dr, dev.Float64, dev.UInt32
+    zero = U(0)
+    y = w = None
+    good = dr.full(dev.Bool, True, dr.width(pmf))
+    if lt.n_point:
+        if lt.unrolled:  # a select over the few lights' broadcast scalars instead of two gathers per lane
+            y_pt = dev.Vector3d(*lt.s_point_pos[0])
+            inten = dev.Vector3d(*lt.s_point_int[0])
+            for li in range(1, lt.n_point):
+                here = j == li
+                y_pt = dr.select(here, dev.Vector3d(*lt.s_point_pos[li]), y_pt)
+                inten = dr.select(here, dev.Vector3d(*lt.s_point_int[li]), inten)
+        else:
+            jp = dr.select(is_point, j, zero)
+            y_pt = dr.gather(dev.Vector3d, lt.point_pos, jp, is_point)
+            inten = dr.gather(dev.Vector3d, lt.point_int, jp, is_point)
+        e = y_pt - p
+        d2 = dr.maximum((e.x * e.x + e.y * e.y) + e.z * e.z, 1e-12)
+        y, w = y_pt, inten / d2 / pmf
+    if lt.n_tri:
+        on_tri = ~is_point
+        jt = dr.select(is_point, zero, j - lt.n_point)
+        su = dr.sqrt(u4)
+        b1, b2 = 1.0 - su, u5 * su
+        t0 = dr.gather(dev.Vector3d, lt.tri[0], jt, on_tri)
+        y_tri = (t0 + b1 * (dr.gather(dev.Vector3d, lt.tri[1], jt, on_tri) - t0)) \
+            + b2 * (dr.gather(dev.Vector3d, lt.tri[2], jt, on_tri) - t0)
+        e = y_tri - p
+        d2t = dr.maximum((e.x * e.x + e.y * e.y) + e.z * e.z, 1e-12)
+        cos_y = -dr.dot(e / dr.sqrt(d2t), dr.gather(dev.Vector3d, lt.tri_n, jt, on_tri))
+        w_tri = dr.gather(dev.Vector3d, lt.tri_l, jt, on_tri) \
+            * (cos_y * dr.gather(F64, lt.tri_area, jt, on_tri) / d2t / pmf)
+        good = is_point | (cos_y > 0.0)
+        y = y_tri if y is None else dr.select(is_point, y, y_tri)
+        w = w_tri if w is None else dr.select(is_point, w, w_tri)
+    return y, w, good
+
+
+def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int, record=None):
+    """The indirect part of the layered path tracer (``server.path_trace``, §4.4) on the device: ``spp`` paths per
+    fragment (lane ``k * n + i`` is sample ``k`` of fragment ``i``), cosine-weighted Lambertian bounces, Russian
+    roulette from vertex ``rr_depth`` on, and next-event estimation towards one light at every later vertex (chosen
+    as ``LightSampler`` chooses it). The same estimator as the host passes (:mod:`methods.layered_pvs.kernels`), with
+    counter-based random numbers (TEA, keyed by lane and draw) instead of numpy's, so the two agree within noise.
+
+    Returns the (n * spp, 3) float64 path contributions (demodulated: the primary fragment's albedo left out, its
+    direct light not included), copied to the host once; the fragments go up once. Each bounce is one kernel (its
+    closest-hit query, the hit's attributes, the light's choice and sample, the shadow query); the lanes stay in
+    place (masked) from bounce to bounce. ``record``: a list that receives each query's rays (``("i" | "o",
+    Ray3f)``, compacted to the lanes traced) for the benchmark's raw replay."""
+    from suite.core.device.gbuffer import hit_surface
+    from suite.core.shading import SHADOW_TMAX_SCALE
+    from suite.core.trace.base import MAX_RAY_LENGTH
+
+    dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
+    m, tracer = dev.m, dev.tracer
+    n = len(frag.position)
+    total = n * int(spp)
+    if total == 0 or max_depth < 3 or len(lights.power) == 0:
+        return np.zeros((total, 3))
+    lt = DeviceLights(dev, lights)
+    lane = dev.arange(total)
+    fi = lane % dev.opaque(U, n)
+    p = dr.gather(dev.Point3d, dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d), fi)
+    ng = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
+    ns = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
+    thr = dr.full(dev.Vector3d, 1.0, total)
+    sample = dr.zeros(dev.Vector3d, total)
+    live = dr.full(dev.Bool, True, total)
+    closest_rays = dr.zeros(U, total)   # closest-hit queries per lane (the alpha walk's included)
+    shadow_rays = dr.zeros(U, total)
+    key = U(lane)
+    seed_u = dev.opaque(U, int(seed) & 0xFFFFFFFF)
+    length = dr.full(F, float(MAX_RAY_LENGTH), total)
+    one, zero = U(1), U(0)
+    depth = 1
+    while depth + 1 < max_depth:
+        ctr = seed_u * 0x632BE5AB + U(depth * 8)
+        u = [m.sample_tea_float32(key, ctr + k, 8) for k in range(6)]
+        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
+        if depth >= rr_depth:
+            q = dr.minimum(dr.maximum(dr.maximum(thr.x, thr.y), thr.z), 0.95)
+            live = live & (F64(u[0]) < q)
+            thr = thr / dr.maximum(q, 1e-12)
+        d32 = _cosine_hemisphere(dev, ns, u[1], u[2])
+        d64 = dev.Vector3d(d32)
+        queried = live & (dr.dot(d64, ng) > 0.0)
+        o64 = dev.offset_origin(p, ng)
+        o_local = dev.local_f32(o64)
+        _, prim, hu, hv, traced = dev.closest(o_local, d32, length, queried)
+        closest_rays = closest_rays + (dr.select(queried, one, zero) if traced is None else traced)
+        live = queried & (prim >= 0)
+        hit = hit_surface(dev, prim, hu, hv, live, o64, d64, d64)
+        depth += 1
+        p, ng, ns = hit.position, hit.ng, hit.ns
+        thr = thr * dev.Vector3d(hit.albedo)
+        # Next-event estimation towards one light (LightSampler.sample): a point light's intensity over d^2, or a
+        # uniform point on a triangle light with its cosine and area; both over the choice's probability.
+        j, pmf = _choose_light(dev, lt, p, F64(u[3]))
+        is_point = j < lt.n_point
+        y, w, good = _light_sample(dev, lt, p, j, pmf, is_point, F64(u[4]), F64(u[5]))
+        e = y - p
+        dist = dr.sqrt((e.x * e.x + e.y * e.y) + e.z * e.z)
+        wi = e / dr.maximum(dist, 1e-30)
+        cos_x = dr.dot(wi, ns)
+        shadow = live & good & (cos_x > 0.0)
+        # from the light's side of the surface, short of the light
+        so64 = dev.offset_origin(p, dr.select(dr.dot(wi, ng) >= 0.0, ng, -ng))
+        seg = dr.norm((p + wi * dist) - so64)
+        so_local, sd32, slen = dev.local_f32(so64), dev.Vector3f(wi), F(seg * SHADOW_TMAX_SCALE)
+        blocked, straced = dev.occluded_rays(so_local, sd32, slen, shadow)
+        sample = sample + dr.select(shadow & ~blocked, thr * w * (cos_x * (1.0 / math.pi)), 0.0)
+        shadow_rays = shadow_rays + dr.select(shadow, one, zero)
+        if straced is not None:
+            closest_rays = closest_rays + straced
+        dr.eval(p, ng, ns, thr, live, sample, closest_rays, shadow_rays)
+        if record is not None:
+            record.append(("i", _traced_rays(dev, queried, o_local, d32, length)))
+            record.append(("o", _traced_rays(dev, shadow, so_local, sd32, slen)))
+    dev.sync()
+    bound = (max_depth + 1) * (1 + MAX_ALPHA_LAYERS) * 2
+    tracer.counters["rays_intersect"] += dev.sum_u32(closest_rays, bound)
+    tracer.counters["rays_occluded"] += dev.sum_u32(shadow_rays, max_depth + 1)
+    return dev.to_host(sample, np.float64)
+
+
+def _traced_rays(dev, active, o_local, d, length):
+    """The rays of the lanes where ``active`` holds, compacted and evaluated (a Ray3f for the raw replay)."""
+    dr = dev.dr
+    idx = dr.compress(dev.Bool(active))
+    return dev.raw_ray(dr.gather(dev.Point3f, o_local, idx), dr.gather(dev.Vector3f, d, idx),
+                       dr.gather(dev.Float, length, idx))

@@ -579,7 +579,8 @@ def direct_illumination_reference(scene, tracer, frag: Fragments, t_s: float, ar
                                   seed).reshape(n, 3)
 
 
-def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
+def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng,
+               record=None):
     """Path tracing of every fragment (§4.4): ``spp`` paths per fragment, next-event estimation at every vertex,
     cosine-sampled Lambertian bounces, Russian roulette from vertex ``rr_depth`` on. ``max_depth`` counts
     vertices as Mitsuba does (2 = direct light only). Every material is shaded as Lambertian with its albedo.
@@ -602,22 +603,30 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     a time, under a lock: one stream of rays, as the raw backend traces them), so one thread's shading passes
     (compiled, the GIL released) overlap another's queries; more threads than cores, so each runs as a
     :meth:`SerialTracer.part` (the query keeps a core of its own). The direct light is added last, so the sums do
-    not depend on the order the threads ran in."""
+    not depend on the order the threads ran in.
+
+    On a Dr.Jit tracer (``tracer.device``) the paths run as device kernels instead
+    (:func:`methods.layered_pvs.device.path_trace`: the same estimator with counter-based random numbers, so the
+    illumination agrees with the host passes' within noise, not bit for bit); ``record`` (a list) then receives their
+    rays for the benchmark's raw replay."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
         return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
     seed = int(rng.integers(1 << 31))
     total = n * spp
-    sample = np.zeros((total, 3))
-    parts = _path_parts(total, rng)
-    shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
-    if getattr(tracer, "device", None) is not None:
-        # Dr.Jit is driven from one thread: the parts one after the other.
+    device = getattr(tracer, "device", None)
+    if device is not None:
+        # A Dr.Jit tracer: the paths as device kernels (their own random numbers: the same estimator, other samples).
+        from methods.layered_pvs import device as layered_device
+
         direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), seed)
-        for part in parts:
-            _part_paths(tracer, *shared, *part)
+        sample = layered_device.path_trace(device, frag, lights, spp, max_depth, rr_depth, int(rng.integers(1 << 31)),
+                                           record=record)
     else:
+        sample = np.zeros((total, 3))
+        parts = _path_parts(total, rng)
+        shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
         from concurrent.futures import ThreadPoolExecutor
 
         serial = SerialTracer(tracer, threading.Lock())

@@ -17,6 +17,7 @@ frame reuses the compiled kernels.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -263,30 +264,18 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     return g
 
 
-def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hits: bool, with_motion: bool,
-                    mark) -> dict:
-    """The G-buffer's fields from the frame's scalars (:func:`render_gbuffer`), evaluated: one kernel, or one per
-    stage where ``mark`` evaluates and times them. Reads every array through ``dev`` (its tables, the tracer's
-    scene and id tables), which a recording binds to its inputs."""
+def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in) -> SimpleNamespace:
+    """Surface attributes at closest hits, lazily: :func:`suite.core.gbuffer.surface_attributes` and the facing of
+    :func:`suite.core.gbuffer.render_gbuffer`, in float64 where the host is, operation for operation.
+
+    ``prim``, ``u``, ``v``: the hits (``valid`` where ``prim >= 0``); ``ray_o`` (Point3d, world) and ``d64`` (Vector3d):
+    the rays in float64, whose intersection with the hit triangle's plane is the position (the tracers' float32
+    distance carries an error that grows with the distance from the origin); ``d_in`` (Vector3d): the direction the
+    normals are turned against. Returns ``position`` (Point3d), ``ng`` and ``ns`` (Vector3d, geometric and shading
+    normal facing the ray), ``albedo`` (Vector3f: the material's constant or its texture), ``mat`` (Int32) and
+    ``front`` (Bool: the ray met the geometric normal's front)."""
     dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
     tables = dev.tables
-    n = width * height
-    mark = mark or (lambda name, *values: None)
-
-    # 1. camera rays (float64, then the float32 rays the tracer gets, as on the host)
-    d64, row, col = camera_rays_from(dev, scalars[:13], width, height)
-    d32 = dev.Vector3f(d64)
-    o_local = dev.Point3f(*[F(x) for x in scalars[13:16]])
-    ray_o = dev.Point3d(*scalars[16:19])
-    mark("camera_rays_ms", d64, d32)
-
-    # 2. closest hits
-    length = dr.full(F, float(MAX_RAY_LENGTH), n)
-    t, prim, u, v, traced = dev.closest(o_local, d32, length)
-    valid = prim >= 0
-    mark("trace_ms", t, prim, u, v, *([traced] if traced is not None else []))
-
-    # 3. attributes (surface_attributes + the facing of render_gbuffer), float64 where the host is
     vid = tables.triangle(prim, valid)
     tri = [dev.Vector3d(dr.gather(dev.Vector3f, tables.vpos, vid[k], valid)) for k in range(3)]
     w0 = F64(1.0 - u - v)  # float32, then float64, as surface_attributes computes it
@@ -306,7 +295,6 @@ def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hi
     ns_len = dr.sqrt((ns.x * ns.x + ns.y * ns.y) + ns.z * ns.z)
     ns_safe = dr.maximum(ns_len, 1e-30)
     ns = dev.Vector3d(dr.select(ns_len > 1e-12, dev.Vector3d(ns.x / ns_safe, ns.y / ns_safe, ns.z / ns_safe), ng))
-    d_in = dev.Vector3d(d32)
     s = einsum_dot(ng, d_in)
     flip = dr.select(s > 0.0, 1.0, dr.select(s < 0.0, -1.0, 1.0))  # np.sign with 0 -> 1
     front = flip < 0.0
@@ -319,6 +307,35 @@ def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hi
         uvx, uvy = tables.uv_f64(vid, w, textured)
         tex = tables.albedo_tex.lookup(mat, uvx, uvy, textured)
         albedo = dr.select(textured, dev.Vector3f(F(tex[0]), F(tex[1]), F(tex[2])), albedo)
+    return SimpleNamespace(position=position, ng=ng_view, ns=ns_view, albedo=albedo, mat=mat, front=front)
+
+
+def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hits: bool, with_motion: bool,
+                    mark) -> dict:
+    """The G-buffer's fields from the frame's scalars (:func:`render_gbuffer`), evaluated: one kernel, or one per
+    stage where ``mark`` evaluates and times them. Reads every array through ``dev`` (its tables, the tracer's
+    scene and id tables), which a recording binds to its inputs."""
+    dr, F = dev.dr, dev.Float
+    tables = dev.tables
+    n = width * height
+    mark = mark or (lambda name, *values: None)
+
+    # 1. camera rays (float64, then the float32 rays the tracer gets, as on the host)
+    d64, row, col = camera_rays_from(dev, scalars[:13], width, height)
+    d32 = dev.Vector3f(d64)
+    o_local = dev.Point3f(*[F(x) for x in scalars[13:16]])
+    ray_o = dev.Point3d(*scalars[16:19])
+    mark("camera_rays_ms", d64, d32)
+
+    # 2. closest hits
+    length = dr.full(F, float(MAX_RAY_LENGTH), n)
+    t, prim, u, v, traced = dev.closest(o_local, d32, length)
+    valid = prim >= 0
+    mark("trace_ms", t, prim, u, v, *([traced] if traced is not None else []))
+
+    # 3. attributes (surface_attributes + the facing of render_gbuffer), float64 where the host is
+    hit = hit_surface(dev, prim, u, v, valid, ray_o, d64, dev.Vector3d(d32))
+    position, ns_view, ng_view, albedo, mat, front = hit.position, hit.ns, hit.ng, hit.albedo, hit.mat, hit.front
     zero3 = dev.Vector3f(0.0, 0.0, 0.0)
     out = {}
     # Not stored when they can be had later for little: zero emission, kind codes (from the material), view
