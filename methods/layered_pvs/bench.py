@@ -9,9 +9,9 @@ the plain tracer (the same rays: the update is deterministic), interleaved with 
 the backend's raw entry points (``raw_intersect`` / ``raw_occluded`` on rays already in its frame and layout, each
 call timed on fresh copies made just before it, so its rays are in the cache as the stage's are; a backend without
 them replays through the suite's queries, and the row says so); medians of the repeats. On a Dr.Jit backend
-"raw" is the backend on rays in device memory: every stage's rays (uploaded once, outside the timed calls) replay
-on ``ray_intersect_preliminary`` / ``ray_test`` of Dr.Jit arrays, and the path tracer's bounces, which run as
-device kernels there, are recorded on the device.
+"raw" is the backend on rays in device memory: the PVS views, the depth peeling and the path tracer's bounces run
+as device kernels there and are recorded on the device, the other queries (uploaded once, outside the timed calls)
+join them, and every stage replays on ``ray_intersect_preliminary`` / ``ray_test`` of Dr.Jit arrays.
 
 One update is made outside the harness with :class:`LocalContext` (stages timed with ``perf_counter``).
 
@@ -140,10 +140,11 @@ def _replay(tracer, log):
 
 
 def _device_replay(dev, log, records):
-    """(rays, replay function, True) for a stage that traced on a Dr.Jit device (the layered path tracer's bounces,
-    ``records``: ``("i" | "o", Ray3f)``) besides numpy-fed queries (``log``, the primary fragments' shadow rays):
-    every ray replayed device-resident on the backend's raw ``ray_intersect_preliminary`` / ``ray_test`` (the
-    logged rays uploaded once, outside the timed calls), each call timed to its end."""
+    """(rays, replay function, True) for a stage on a Dr.Jit backend: the queries it made on the device
+    (``records``: ``("i" | "o", Ray3f)``, :func:`methods.layered_pvs.device.recording`) and through the numpy
+    interface (``log``: the primary fragments' shadow rays), every ray replayed device-resident on the backend's raw
+    ``ray_intersect_preliminary`` / ``ray_test`` (the logged rays uploaded once, outside the timed calls), each call
+    timed to its end."""
     calls = [(kind, dev.raw_ray(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f),
                                 dev.to_device(length, dev.Float))) for kind, o, d, length in log] + list(records)
     rays = int(sum(dev.dr.width(ray.d) for _, ray in calls))
@@ -157,23 +158,6 @@ def _device_replay(dev, log, records):
         return elapsed
 
     return rays, replay, True
-
-
-@contextmanager
-def _recorded_paths(records: list):
-    """The update's ``server.path_trace`` call records the rays it traces on a device into ``records``."""
-    from methods.layered_pvs import server
-
-    original = server.path_trace
-
-    def recording(*args, **kwargs):
-        return original(*args, **{**kwargs, "record": records})
-
-    server.path_trace = recording
-    try:
-        yield records
-    finally:
-        server.path_trace = original
 
 
 @contextmanager
@@ -216,24 +200,25 @@ def _device_ms(column: str, fn, args, devices, scene, repeats: int) -> dict:
 
 
 def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: int = 3, devices=()):
+    from methods.layered_pvs import device as layered_device
     from methods.layered_pvs import packing, server
 
     rows = []
     for res in resolutions:
         for L in layer_counts:
             p = {**params, "layers": L}
-            # The recording takes the code paths the timed updates take: on a Dr.Jit tracer the path tracer's
-            # bounces run on the device (their rays recorded there), the other queries through the recorder.
+            # The recording takes the code paths the timed updates take: on a Dr.Jit tracer the PVS, the layers and
+            # the paths are traced on the device (their rays recorded there), the other queries through the recorder.
             dev = getattr(tracer, "device", None)
             rec = RecordingTracer(tracer, device=dev is not None)
             with _kept_inputs(server, "denoise_fragments") as svgf_inputs, \
-                    _kept_inputs(packing, "pack_stage") as pack_inputs, _recorded_paths([]) as device_rays:
+                    _kept_inputs(packing, "pack_stage") as pack_inputs, layered_device.recording({}) as device_rays:
                 ctx, _, _, _ = one_update(scene, rec, p, res, t_s, t_s + 0.1)  # records the rays (and warms up)
             if dev is None:
                 replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
             else:  # raw on a Dr.Jit backend: rays in device memory (numpy-fed raw calls convert every ray)
-                replays = {stage: _device_replay(dev, ctx.stage_log[stage], device_rays if stage == "path_trace"
-                                                 else []) for stage in SERVER_STAGES}
+                replays = {stage: _device_replay(dev, ctx.stage_log[stage], device_rays.get(stage, []))
+                           for stage in SERVER_STAGES}
             stage_ms = {stage: [] for stage in SERVER_STAGES}
             raw_ms = {stage: [] for stage in SERVER_STAGES}
             reps = max(int(repeats), 1)

@@ -15,6 +15,7 @@ filling) with their results bit for bit (below, "packing").
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -592,7 +593,7 @@ def _light_sample(dev, lt: DeviceLights, p, j, pmf, is_point, u4, u5):
     return y, w, good
 
 
-def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int, record=None):
+def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int):
     """The indirect part of the layered path tracer (``server.path_trace``, §4.4) on the device: ``spp`` paths per
     fragment (lane ``k * n + i`` is sample ``k`` of fragment ``i``), cosine-weighted Lambertian bounces, Russian
     roulette from vertex ``rr_depth`` on, and next-event estimation towards one light at every later vertex (chosen
@@ -602,8 +603,7 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     Returns the (n * spp, 3) float64 path contributions (demodulated: the primary fragment's albedo left out, its
     direct light not included), copied to the host once; the fragments go up once. Each bounce is one kernel (its
     closest-hit query, the hit's attributes, the light's choice and sample, the shadow query); the lanes stay in
-    place (masked) from bounce to bounce. ``record``: a list that receives each query's rays (``("i" | "o",
-    Ray3f)``, compacted to the lanes traced) for the benchmark's raw replay."""
+    place (masked) from bounce to bounce. Its queries' rays are recorded under ``"path_trace"`` (:func:`recording`)."""
     from suite.core.device.gbuffer import hit_surface
     from suite.core.shading import SHADOW_TMAX_SCALE
     from suite.core.trace.base import MAX_RAY_LENGTH
@@ -670,9 +670,8 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
         if straced is not None:
             closest_rays = closest_rays + straced
         dr.eval(p, ng, ns, thr, live, sample, closest_rays, shadow_rays)
-        if record is not None:
-            record.append(("i", _traced_rays(dev, queried, o_local, d32, length)))
-            record.append(("o", _traced_rays(dev, shadow, so_local, sd32, slen)))
+        _record(dev, "path_trace", "i", queried, o_local, d32, length)
+        _record(dev, "path_trace", "o", shadow, so_local, sd32, slen)
     dev.sync()
     bound = (max_depth + 1) * (1 + MAX_ALPHA_LAYERS) * 2
     tracer.counters["rays_intersect"] += dev.sum_u32(closest_rays, bound)
@@ -680,9 +679,136 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     return dev.to_host(sample, np.float64)
 
 
-def _traced_rays(dev, active, o_local, d, length):
-    """The rays of the lanes where ``active`` holds, compacted and evaluated (a Ray3f for the raw replay)."""
+# ------------------------------------------------------------------------------------------ PVS and depth peeling
+
+_RECORDS: dict | None = None   # stage -> [("i" | "o", Ray3f)] while a benchmark records (see recording)
+
+
+@contextmanager
+def recording(records: dict):
+    """While active, the device passes put the rays of each of their queries (compacted to the lanes traced,
+    evaluated) into ``records[stage]`` (``"pvs"``, ``"layers"``, ``"path_trace"``): the benchmark's raw replay."""
+    global _RECORDS
+    outer, _RECORDS = _RECORDS, records
+    try:
+        yield records
+    finally:
+        _RECORDS = outer
+
+
+def _record(dev, stage: str, kind: str, active, o_local, d, length) -> None:
+    if _RECORDS is None:
+        return
     dr = dev.dr
-    idx = dr.compress(dev.Bool(active))
-    return dev.raw_ray(dr.gather(dev.Point3f, o_local, idx), dr.gather(dev.Vector3f, d, idx),
-                       dr.gather(dev.Float, length, idx))
+    if active is not None:
+        idx = dr.compress(dev.Bool(active))
+        o_local, d, length = (dr.gather(dev.Point3f, o_local, idx), dr.gather(dev.Vector3f, d, idx),
+                              dr.gather(dev.Float, length, idx))
+    _RECORDS.setdefault(stage, []).append((kind, dev.raw_ray(o_local, d, length)))
+
+
+def compute_pvs(dev, views, fov_deg: float, width: int, height: int) -> np.ndarray:
+    """Algorithm 1 on the device: for each (distinct) view an id buffer by ray casting against the whole scene
+    (:func:`suite.core.device.gbuffer.camera_rays`, the host's pixel-centre rays to the bit, and the tracing-frame
+    origin as the host's ``local_rays`` rounds it), the hit triangles marked in a per-face table; the marks come
+    back once, as sorted ids (``server.compute_pvs``'s ids on ``llvm_ad_rgb``)."""
+    from suite.core.device.gbuffer import camera_rays
+    from suite.core.trace.base import MAX_RAY_LENGTH
+
+    dr, F, U = dev.dr, dev.Float, dev.UInt32
+    tracer = dev.tracer
+    n = int(width) * int(height)
+    marks = dr.zeros(U, tracer.scene.num_faces)
+    length = dr.full(F, float(MAX_RAY_LENGTH), n)
+    traced_total = 0
+    for pose in views:
+        d64, _, _ = camera_rays(dev, pose, fov_deg, width, height)
+        d32 = dev.Vector3f(d64)
+        o_local = _origin_local(dev, pose.position, n)
+        _, prim, _, _, traced = dev.closest(o_local, d32, length)
+        dr.scatter(marks, U(1), U(dr.maximum(prim, 0)), prim >= 0)
+        dr.eval(marks, *([traced] if traced is not None else []))
+        traced_total += n if traced is None else dev.sum_u32(traced, 1 + MAX_ALPHA_LAYERS)
+        _record(dev, "pvs", "i", None, o_local, d32, length)
+    tracer.counters["rays_intersect"] += traced_total
+    return np.nonzero(dev.to_host(marks))[0].astype(np.int64)
+
+
+def _origin_local(dev, position, n: int):
+    """A camera at ``position`` as every pixel's tracing-frame origin, rounded as the host path rounds it: the
+    float32 world point (``camera_rays(dtype=float32)``), then ``float32(float64(o) - shift)`` (``as_rays``)."""
+    o32 = np.asarray(position, np.float64).astype(np.float32)
+    local = (o32.astype(np.float64) - np.asarray(dev.tracer.shift, np.float64)).astype(np.float32)
+    return dev.Point3f(*[dev.dr.full(dev.Float, float(x), n) for x in local])
+
+
+def _past(dev, t):
+    """``server.past`` on the device: ``t * (1 + PEEL_REL_EPS)`` in float32, then the next float32 up (the bit
+    pattern plus one: distances are finite and not negative)."""
+    from methods.layered_pvs.server import PEEL_REL_EPS
+
+    dr = dev.dr
+    scaled = t * dev.opaque(dev.Float, float(np.float32(1 + PEEL_REL_EPS)))
+    return dr.reinterpret_array(dev.Float, dr.reinterpret_array(dev.UInt32, scaled) + 1)
+
+
+def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max_skips: int = 256):
+    """Ray-traced depth peeling (§4.1.2) on the device, the layers of ``server.peel`` (its queries and their bits on
+    ``llvm_ad_rgb``): per layer a wavefront of closest-hit queries, each ray from just past its previous hit (the
+    float32 ``past``; origin advanced by ``float32(d * start)`` in float32 as ``as_rays`` advances it), a hit on a
+    triangle outside ``keep_mask`` (bool per face; None keeps every hit) stepped over and traced again (at most
+    ``max_skips`` queries per layer), the rays still going compacted between queries. The rays go up once; the
+    layers come back once. Returns (t, prim, u, v) as (layers, N) host arrays (inf / -1 / 0 where empty)."""
+    from suite.core.trace.base import MAX_RAY_LENGTH
+
+    dr, F, F64, U, I = dev.dr, dev.Float, dev.Float64, dev.UInt32, dev.Int32
+    tracer = dev.tracer
+    n = len(dirs)
+    shift = np.asarray(tracer.shift, np.float64)
+    o_loc = (np.asarray(origins, np.float32).astype(np.float64) - shift).astype(np.float32)
+    o_all = dev.to_device(o_loc, dev.Point3f)
+    d_all = dev.to_device(np.asarray(dirs, np.float32), dev.Vector3f)
+    use_keep = keep_mask is not None
+    keep = dev.to_device(np.asarray(keep_mask, np.uint32), U) if use_keep else None
+    t_out = dr.full(F, float("inf"), layers * n)
+    p_out = dr.full(I, -1, layers * n)
+    u_out, v_out = dr.zeros(F, layers * n), dr.zeros(F, layers * n)
+    max_length = float(MAX_RAY_LENGTH)
+    idx, start = dev.arange(n), dr.zeros(F, n)
+    queries = 0
+    for k in range(layers):
+        base = dev.opaque(U, k * n)
+        for _ in range(max_skips):
+            if dr.width(idx) == 0:
+                break
+            d = dr.gather(dev.Vector3f, d_all, idx)
+            o0 = dr.gather(dev.Point3f, o_all, idx)
+            o_local = dev.Point3f(*[o0[c] + F(d[c] * start) for c in range(3)])
+            length = dr.minimum(dr.maximum(F(F64(max_length) - F64(start)), 0.0), max_length)
+            t, prim, u, v, traced = dev.closest(o_local, d, length)
+            ti = t + start
+            hit = prim >= 0
+            kept = hit & (dr.gather(U, keep, U(dr.maximum(prim, 0)), hit) != 0) if use_keep else hit
+            slot = base + idx
+            for out, value in ((t_out, ti), (p_out, prim), (u_out, u), (v_out, v)):
+                dr.scatter(out, value, slot, kept)
+            skip = hit & ~kept
+            dr.eval(t_out, p_out, u_out, v_out, ti, skip, *([traced] if traced is not None else []))
+            queries += dr.width(idx) if traced is None else dev.sum_u32(traced, 1 + MAX_ALPHA_LAYERS)
+            _record(dev, "layers", "i", None, o_local, d, length)
+            sel = dr.compress(skip)
+            if dr.width(sel) == 0:  # (an empty array does not broadcast against a scalar)
+                break
+            idx, start = dr.gather(U, idx, sel), _past(dev, dr.gather(F, ti, sel))
+            dr.eval(idx, start)
+        if k + 1 == layers:
+            break
+        # the next layer: every pixel with a fragment in this one, from just past it
+        idx = dr.compress(dr.gather(I, p_out, base + dev.arange(n)) >= 0)
+        if dr.width(idx) == 0:
+            break
+        start = _past(dev, dr.gather(F, t_out, base + idx))
+        dr.eval(idx, start)
+    tracer.counters["rays_intersect"] += int(queries)
+    host = [dev.to_host(a).reshape(layers, n) for a in (t_out, p_out, u_out, v_out)]
+    return host[0], host[1].astype(np.int64), host[2], host[3]

@@ -106,6 +106,10 @@ def compute_pvs(tracer, views, fov_deg: float, width: int, height: int) -> np.nd
         key = tuple(np.concatenate([np.asarray(v, np.float64).reshape(3) for v in (pose.position, pose.target,
                                                                                     pose.up)]))
         distinct.setdefault(key, pose)
+    if getattr(tracer, "device", None) is not None:
+        from methods.layered_pvs import device as layered_device
+
+        return layered_device.compute_pvs(tracer.device, list(distinct.values()), fov_deg, width, height)
     rays, hits = {}, {}
 
     def step(i, pose):
@@ -160,6 +164,12 @@ def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, 
     :func:`peel_reference` instead."""
     if keep is not None and keep_mask is None:
         return peel_reference(tracer.intersect, origins, dirs, layers, keep, max_skips, shape)
+    shp = (layers,) + tuple(shape) if shape is not None else (layers, len(dirs))
+    if getattr(tracer, "device", None) is not None:
+        from methods.layered_pvs import device as layered_device
+
+        out = layered_device.peel(tracer.device, origins, dirs, layers, keep_mask, max_skips)
+        return Layers(*(a.reshape(shp) for a in out))
     kern = kernels.jit()
     n = len(dirs)
     t_out = np.full((layers, n), np.inf, np.float32)
@@ -209,7 +219,6 @@ def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, 
             query, nxt, m = nxt, query, m_next
             if m == 0:
                 break
-    shp = (layers,) + tuple(shape) if shape is not None else (layers, n)
     return Layers(t_out.reshape(shp), p_out.reshape(shp), u_out.reshape(shp), v_out.reshape(shp))
 
 
@@ -579,8 +588,7 @@ def direct_illumination_reference(scene, tracer, frag: Fragments, t_s: float, ar
                                   seed).reshape(n, 3)
 
 
-def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng,
-               record=None):
+def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, rng):
     """Path tracing of every fragment (§4.4): ``spp`` paths per fragment, next-event estimation at every vertex,
     cosine-sampled Lambertian bounces, Russian roulette from vertex ``rr_depth`` on. ``max_depth`` counts
     vertices as Mitsuba does (2 = direct light only). Every material is shaded as Lambertian with its albedo.
@@ -607,8 +615,7 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
 
     On a Dr.Jit tracer (``tracer.device``) the paths run as device kernels instead
     (:func:`methods.layered_pvs.device.path_trace`: the same estimator with counter-based random numbers, so the
-    illumination agrees with the host passes' within noise, not bit for bit); ``record`` (a list) then receives their
-    rays for the benchmark's raw replay."""
+    illumination agrees with the host passes' within noise, not bit for bit)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
@@ -621,8 +628,7 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
         from methods.layered_pvs import device as layered_device
 
         direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), seed)
-        sample = layered_device.path_trace(device, frag, lights, spp, max_depth, rr_depth, int(rng.integers(1 << 31)),
-                                           record=record)
+        sample = layered_device.path_trace(device, frag, lights, spp, max_depth, rr_depth, int(rng.integers(1 << 31)))
     else:
         sample = np.zeros((total, 3))
         parts = _path_parts(total, rng)

@@ -249,8 +249,9 @@ def test08_device_paths_are_deterministic_and_count_their_rays(backend):
     lights = sv.LightSampler(scene, 0.5)
     dev = tracer.device
     before = dict(tracer.counters)
-    record = []
-    first = device.path_trace(dev, frag, lights, 2, 5, 3, seed=7, record=record)
+    with device.recording({}) as records:
+        first = device.path_trace(dev, frag, lights, 2, 5, 3, seed=7)
+    record = records["path_trace"]
     counted = {k: tracer.counters[k] - before[k] for k in before}
     assert np.array_equal(first, device.path_trace(dev, frag, lights, 2, 5, 3, seed=7))
     assert not np.array_equal(first, device.path_trace(dev, frag, lights, 2, 5, 3, seed=8))
@@ -309,3 +310,73 @@ def test10_device_light_choice_and_sample_are_the_light_samplers(backend, scene_
     at_parity(dev.to_host(pmf), want_pmf, share=1.0, rtol=1e-12, atol=0.0)
     assert np.array_equal(dev.to_host(ok), want_ok)
     at_parity(dev.to_host(w)[want_ok], want_w[want_ok], share=1.0, rtol=1e-9, atol=0.0)
+
+
+def _host_view(tracer):
+    """``tracer`` seen as a host tracer (its numpy-fed queries): the host passes on the very same backend."""
+    from suite.core.trace.recording import RecordingTracer
+
+    return RecordingTracer(tracer)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name, offset", [("gallery", None), ("arena", None), ("arena", 1e4)])
+def test11_the_device_pvs_is_the_host_passes_pvs(backend, scene_name, offset, at_parity):
+    # Algorithm 1's seven views (two of them the same, as for a camera with no known motion) at 1.1x the FOV; the
+    # gallery's grate is alpha-tested (its transparent texels let the views see through); arena also moved 1e4
+    # away (the camera's origin rounded as the host rounds it, in the tracing frame).
+    from suite.harness import runner
+
+    scene = runner.load_scene(scene_name)
+    if offset is not None:
+        scene = scene.translated([offset, -offset, offset])
+    tracer = runner.make_tracer(backend, scene)
+    pose = scene.camera.pose_at(0.5)
+    views = sv.predict_views([(0.4, scene.camera.pose_at(0.4)), (0.5, pose)], 0.2, 0.3) + [pose]
+    before = dict(tracer.counters)
+    got = sv.compute_pvs(tracer, views, scene.camera.fov_deg * 1.1, 96, 54)
+    counted = tracer.counters["rays_intersect"] - before["rays_intersect"]
+    host = _host_view(tracer)
+    before = dict(tracer.counters)
+    want = sv.compute_pvs(host, views, scene.camera.fov_deg * 1.1, 96, 54)
+    assert 0 < len(want) < scene.num_faces
+    if backend == "mitsuba-llvm":
+        assert np.array_equal(got, want)
+        assert counted == tracer.counters["rays_intersect"] - before["rays_intersect"]
+    else:  # hits at the backends' parity: a triangle seen by a pixel or two may differ
+        assert len(np.setxor1d(got, want)) <= 0.01 * len(want)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name, layers, keep_share, max_skips",
+                         [("gallery", 4, None, 256), ("gallery", 6, 0.5, 256), ("arena", 3, 0.3, 2),
+                          ("living_room", 8, 0.7, 1), ("far:living_room", 4, 0.8, 256)])
+def test12_device_depth_peeling_gives_the_host_passes_layers(backend, scene_name, layers, keep_share, max_skips,
+                                                             at_parity):
+    # Every hit kept, or a random share of the triangles (many hits stepped over, up to max_skips queries per
+    # layer: 1 and 2 stop rays short); more layers than the depth complexity of most pixels (empty layers); the
+    # view at 1.1x the FOV, some pixels on the sky in arena; living_room moved 1e4 away ("far:").
+    from suite.harness import runner
+
+    far = scene_name.startswith("far:")
+    scene = runner.load_scene(scene_name.removeprefix("far:"))
+    if far:
+        scene = scene.translated([1e4, -1e4, 1e4])
+    tracer = runner.make_tracer(backend, scene)
+    view = sv.LayerView(scene.camera.pose_at(0.5), scene.camera.fov_deg * 1.1, 80, 45)
+    o64, d64 = sv.view_rays(view)
+    keep = None if keep_share is None else np.random.default_rng(5).random(scene.num_faces) < keep_share
+    args = (o64.astype(np.float32), d64.astype(np.float32), layers)
+    before = tracer.counters["rays_intersect"]
+    got = sv.peel(tracer, *args, max_skips=max_skips, shape=(45, 80), keep_mask=keep)
+    counted = tracer.counters["rays_intersect"] - before
+    before = tracer.counters["rays_intersect"]
+    want = sv.peel(_host_view(tracer), *args, max_skips=max_skips, shape=(45, 80), keep_mask=keep)
+    assert want.valid[0].any() and not want.valid[-1].all()
+    if backend == "mitsuba-llvm":
+        for name in ("t", "prim", "u", "v"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), name
+        assert counted == tracer.counters["rays_intersect"] - before
+    else:
+        assert (got.prim == want.prim).mean() >= 0.99
+        at_parity(got.t[got.valid & want.valid], want.t[got.valid & want.valid], share=0.99)
