@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
+from functools import partial
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -593,15 +595,15 @@ def _light_sample(dev, lt: DeviceLights, p, j, pmf, is_point, u4, u5):
     return y, w, good
 
 
-def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int):
+def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int):
     """The indirect part of the layered path tracer (``server.path_trace``, §4.4) on the device: ``spp`` paths per
     fragment (lane ``k * n + i`` is sample ``k`` of fragment ``i``), cosine-weighted Lambertian bounces, Russian
     roulette from vertex ``rr_depth`` on, and next-event estimation towards one light at every later vertex (chosen
     as ``LightSampler`` chooses it). The same estimator as the host passes (:mod:`methods.layered_pvs.kernels`), with
     counter-based random numbers (TEA, keyed by lane and draw) instead of numpy's, so the two agree within noise.
 
-    Returns the (n * spp, 3) float64 path contributions (demodulated: the primary fragment's albedo left out, its
-    direct light not included), copied to the host once; the fragments go up once. Each bounce is one kernel (its
+    Returns the (n * spp) float64 path contributions (Vector3d, evaluated: demodulated, the primary fragment's albedo
+    left out, its direct light not included); the fragments go up once. Each bounce is one kernel (its
     closest-hit query, the hit's attributes, the light's choice and sample, the shadow query); the lanes stay in
     place (masked) from bounce to bounce. Its queries' rays are recorded under ``"path_trace"`` (:func:`recording`)."""
     from suite.core.device.gbuffer import hit_surface
@@ -613,7 +615,7 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     n = len(frag.position)
     total = n * int(spp)
     if total == 0 or max_depth < 3 or len(lights.power) == 0:
-        return np.zeros((total, 3))
+        return dr.zeros(dev.Vector3d, total)
     lt = DeviceLights(dev, lights)
     lane = dev.arange(total)
     fi = lane % dev.opaque(U, n)
@@ -676,7 +678,70 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     bound = (max_depth + 1) * (1 + MAX_ALPHA_LAYERS) * 2
     tracer.counters["rays_intersect"] += dev.sum_u32(closest_rays, bound)
     tracer.counters["rays_occluded"] += dev.sum_u32(shadow_rays, max_depth + 1)
-    return dev.to_host(sample, np.float64)
+    return sample
+
+
+def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int) -> np.ndarray:
+    """:func:`path_samples` copied to the host: (n * spp, 3) float64."""
+    return dev.to_host(path_samples(dev, frag, lights, spp, max_depth, rr_depth, seed), np.float64)
+
+
+def fragment_gbuffer(dev, frag):
+    """The fragments as a (1 x N) :class:`~suite.core.device.gbuffer.DeviceGBuffer` of albedo 1 without emission
+    (``server._fragment_gbuffer`` on the device): float64 positions, the normals rounded to float32 as the G-buffer
+    keeps them."""
+    from suite.core.device.gbuffer import DeviceGBuffer
+
+    dr = dev.dr
+    n = len(frag.position)
+    zeros = dr.zeros(dev.Float, n)
+    g = DeviceGBuffer(device=dev, width=n, height=1, t_s=float("nan"), camera_position=np.zeros(3, np.float32),
+                      position=dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d),
+                      normal=dev.to_device(np.asarray(frag.normal, np.float32), dev.Vector3f),
+                      geo_normal=dev.to_device(np.asarray(frag.geo_normal, np.float32), dev.Vector3f),
+                      albedo=dr.full(dev.Vector3f, 1.0, n), emission=None, depth=zeros, prim=dr.zeros(dev.Int32, n),
+                      valid=dr.full(dev.Bool, True, n), view_dir=None, material=dr.zeros(dev.Int32, n), kind=None,
+                      u=zeros, v=zeros)
+    dr.eval(*g.fields())
+    return g
+
+
+def direct_light(dev, scene, frag, t_s: float, area_samples: int, seed: int):
+    """``server.direct_illumination`` on the device: the suite's direct-lighting kernels
+    (:func:`suite.core.shading.compose_direct` with :mod:`suite.core.device.shading`: every point light with its own
+    shadow ray, area lights with ``area_samples`` stratified samples and counter-based random numbers) on
+    :func:`fragment_gbuffer`. Returns the demodulated light per fragment (Vector3d, on the device)."""
+    from suite.core import shading
+    from suite.core.device import shading as device_shading
+
+    g = fragment_gbuffer(dev, frag)
+    kernels = device_shading
+    if _RECORDS is not None:  # the shadow rays of both kinds of light, for the benchmark's raw replay
+        rays = _RECORDS.setdefault("path_trace", [])
+        rays += [("o", ray) for ray, _ in device_shading.shadow_rays(g, scene.lights_at(t_s), dev.tracer)]
+        kernels = SimpleNamespace(point_light_visibility=device_shading.point_light_visibility,
+                                  shade_point_lights=device_shading.shade_point_lights,
+                                  area_light_radiance=partial(device_shading.area_light_radiance, record=rays))
+    return dev.Vector3d(shading.compose_direct(kernels, scene, g, dev.tracer, t_s, area_samples, seed).rgb)
+
+
+def path_moments(dev, sample, direct, n: int, spp: int):
+    """(mean illumination float32 (N, 3), first and second moments of its luminance (N,)) per fragment, each of its
+    ``spp`` samples (lanes ``k * n + i`` of ``sample``) with its direct light added, in sample order
+    (``kernels._path_moments``' operations; copied to the host once)."""
+    dr, F64 = dev.dr, dev.Float64
+    illum = m1 = m2 = None
+    for k in range(int(spp)):
+        x = dr.gather(dev.Vector3d, sample, dev.arange(n) + k * n) + direct
+        lum = (x.x * 0.2126 + x.y * 0.7152) + x.z * 0.0722
+        if illum is None:
+            illum, m1, m2 = x, lum, lum * lum
+        else:
+            illum, m1, m2 = illum + x, m1 + lum, m2 + lum * lum
+    illum = dev.Vector3f(illum / F64(spp))
+    m1, m2 = m1 / F64(spp), m2 / F64(spp)
+    dr.eval(illum, m1, m2)
+    return dev.to_host(illum, np.float32), dev.to_host(m1, np.float64), dev.to_host(m2, np.float64)
 
 
 # ------------------------------------------------------------------------------------------ PVS and depth peeling

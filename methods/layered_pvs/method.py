@@ -14,7 +14,9 @@ Server, per update (Fig. 4.2, Algorithm 3), one stage each:
   ``compress_*`` first layer as H.264 (``video_crf``), tiles as JPEG (``jpeg_quality``, 4:4:4), pixel mask
                  (binary quadtree or RLE + Huffman, with 'any' pixels §4.5.2), block counts and triangle-subset
                  masks (RLE + Huffman), PVS patch against the previous update (vertex references + Huffman)
-then one message ``update`` (wire.py: header, parts with lengths and CRC-32).
+then one message ``update`` (wire.py: header, parts with lengths and CRC-32). On a Mitsuba llvm/cuda tracer the
+PVS views, the depth peeling, the path tracing (the fragments' direct light, their paths and the moments), the
+SVGF and the pack stage run as Dr.Jit kernels (device.py); the fragments' surfaces and the codecs stay on the host.
 
 Client, on a new update (Fig. 4.8): ``decode`` (parts), ``peel`` (depth peeling of its PVS from the update's
 view, optionally with triangle subsets §4.5.1), ``relocate`` (fragments back to their layers); every frame
@@ -100,8 +102,9 @@ class LayeredPVS(Method):
         "texture_rows": "rows of the packed texture (full layers + tile rows)",
         "tiles": "packed tiles",
         "relocated_fragments": "fragments moved by Algorithm 2",
-        "host_device_bytes": "bytes the server's device kernels (the layered SVGF and the pack stage, on a Mitsuba "
-                             "llvm/cuda tracer) copied between host and device memory; 0 on Embree",
+        "host_device_bytes": "bytes the server's device kernels (PVS, depth peeling, path tracing, the layered SVGF "
+                             "and the pack stage, on a Mitsuba llvm/cuda tracer) copied between host and device "
+                             "memory; 0 on Embree",
         "key": "1 when the update carries a full PVS and an IDR video frame",
     }
     outputs = {
@@ -178,6 +181,8 @@ class LayeredPVS(Method):
         key = st["count"] % max(int(p["key_interval"]), 1) == 0
         st["count"] += 1
 
+        device = getattr(tracer, "device", None)
+        copied0 = device.copied_bytes if device is not None else 0   # what the update's device kernels copy
         with ctx.stage("pvs", place="server") as sg:
             hist = st["history"]
             speed = 0.0
@@ -204,8 +209,6 @@ class LayeredPVS(Method):
             sg.pixels = len(frag.position)
 
         shape = layers.prim.shape
-        device = getattr(ctx.tracer, "device", None)
-        copied0 = device.copied_bytes if device is not None else 0   # what the SVGF and the pack stage copy
         with ctx.stage("denoise", place="server") as sg:
             k, y, x = frag.index
             iters = int(p["denoise_iterations"])

@@ -621,43 +621,46 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     if n == 0 or max_depth < 2 or len(lights) == 0:
         return np.zeros((n, 3), np.float32), np.zeros(n), np.zeros(n)
     seed = int(rng.integers(1 << 31))
-    total = n * spp
     device = getattr(tracer, "device", None)
     if device is not None:
-        # A Dr.Jit tracer: the paths as device kernels (their own random numbers: the same estimator, other samples).
+        # A Dr.Jit tracer: the direct light and the paths as device kernels (their own random numbers: the same
+        # estimators, other samples); the moments come back.
         from methods.layered_pvs import device as layered_device
 
-        direct = direct_illumination(scene, tracer, frag, t_s, max(int(spp), 1), seed)
-        sample = layered_device.path_trace(device, frag, lights, spp, max_depth, rr_depth, int(rng.integers(1 << 31)))
-    else:
-        sample = np.zeros((total, 3))
-        parts = _path_parts(total, rng)
-        shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
-        from concurrent.futures import ThreadPoolExecutor
+        direct = layered_device.direct_light(device, scene, frag, t_s, max(int(spp), 1), seed)
+        sample = layered_device.path_samples(device, frag, lights, spp, max_depth, rr_depth,
+                                             int(rng.integers(1 << 31)))
+        return layered_device.path_moments(device, sample, direct, n, spp)
+    from concurrent.futures import ThreadPoolExecutor
 
-        serial = SerialTracer(tracer, threading.Lock())
+    total = n * spp
+    sample = np.zeros((total, 3))
+    parts = _path_parts(total, rng)
+    shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
 
-        def direct_light():
-            try:
-                with serial.part():
-                    return direct_illumination(scene, serial, frag, t_s, max(int(spp), 1), seed)
-            finally:
-                serial.queried.set()
+    serial = SerialTracer(tracer, threading.Lock())
 
-        def paths(part):
+    def direct_light():
+        try:
             with serial.part():
-                _part_paths(serial, *shared, *part)
+                return direct_illumination(scene, serial, frag, t_s, max(int(spp), 1), seed)
+        finally:
+            serial.queried.set()
 
-        with ThreadPoolExecutor(max_workers=len(parts)) as pool:
-            pending_direct = pool.submit(direct_light)
-            # The parts' set-up (gathers and random numbers, holding the GIL) waits until the backend traces the
-            # direct light's first rays: started together, it held those rays back by about 15 ms.
-            serial.queried.wait()
-            pending = [pool.submit(paths, part) for part in parts[1:]]
-            paths(parts[0])
-            direct = pending_direct.result()
-            for f in pending:
-                f.result()
+    def paths(part):
+        with serial.part():
+            _part_paths(serial, *shared, *part)
+
+    with ThreadPoolExecutor(max_workers=len(parts)) as pool:
+        pending_direct = pool.submit(direct_light)
+        # The parts' set-up (gathers and random numbers, holding the GIL) waits until the backend traces the
+        # direct light's first rays: started together, it held those rays back by about 15 ms.
+        serial.queried.wait()
+        pending = [pool.submit(paths, part) for part in parts[1:]]
+        paths(parts[0])
+        direct = pending_direct.result()
+        for f in pending:
+            f.result()
     # The primary fragment's direct light last: the same sums whatever order the parts ran in.
     illum, m1, m2 = np.empty((n, 3), np.float32), np.empty(n), np.empty(n)
     kernels.jit()["_path_moments"](sample, np.ascontiguousarray(direct, np.float64), n, spp, illum, m1, m2)

@@ -376,3 +376,24 @@ def test13_grey_and_rgb_albedo_maps_read_alike_on_device_and_host(backend):
     else:
         same = dev.prim == host.prim
         np.testing.assert_allclose(dev.albedo[same], host.albedo[same], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test14_area_lights_recording_their_rays_give_the_same_image(backend):
+    """A benchmark's recording runs the samples one after the other: the same image, and the recorded shadow rays
+    are the ones the pass counts (gallery: the alpha walk adds closest-hit queries, not shadow rays)."""
+    from suite.core.device import render_gbuffer
+    from suite.core.device import shading as device_shading
+
+    scene = load("gallery")
+    tracer = make(backend, scene)
+    dg = render_gbuffer(scene, tracer, 0.0, (48, 27))
+    area = host_shading.AreaLights(scene, 0.0)
+    plain = device_shading.area_light_radiance(dg, area, tracer, 4, seed=3).to_host()
+    before = tracer.counters["rays_occluded"]
+    rays = []
+    recorded = device_shading.area_light_radiance(dg, area, tracer, 4, seed=3, record=rays).to_host()
+    assert np.array_equal(recorded, plain) and plain.max() > 0
+    assert len(rays) == 4 and {kind for kind, _ in rays} == {"o"}
+    widths = sum(tracer.device.dr.width(ray.d) for _, ray in rays)
+    assert widths == tracer.counters["rays_occluded"] - before > 0

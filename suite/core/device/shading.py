@@ -333,8 +333,11 @@ class DeviceAreaLights:
 
 
 def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0,
-                        min_distance: float = 0.0) -> DeviceImage:
-    """Soft-shadowed direct light from triangle area lights on the device (see the module docstring)."""
+                        min_distance: float = 0.0, record: list | None = None) -> DeviceImage:
+    """Soft-shadowed direct light from triangle area lights on the device (see the module docstring). The samples are
+    a symbolic loop; with ``record`` (a list) they run one after the other instead (the same image), and each
+    sample's shadow rays, compacted to the lanes that trace them, are appended to it as ``("o", Ray3f)`` (benchmarks:
+    the raw backend on the very rays of the pass)."""
     dev = _check(g, tracer)
     dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
     n = g.pixels
@@ -369,6 +372,7 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
     acc = dr.zeros(dev.Vector3d, n)
     count = dr.zeros(U, n)
     extra = dr.zeros(U, n)
+    pending = None if record is None else []  # each sample's shadow rays, while recording
 
     def body(k, acc, count, extra):
         ctr = seed_u * 0x632BE5AB + k * 4
@@ -401,7 +405,10 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
         seg = y - o64
         seg_len = dr.norm(seg)
         d = dev.Vector3f(seg / dr.maximum(seg_len, 1e-30))
-        blocked, traced = dev.occluded_rays(o_local, d, F(seg_len * SHADOW_TMAX_SCALE), active)
+        length = F(seg_len * SHADOW_TMAX_SCALE)
+        blocked, traced = dev.occluded_rays(o_local, d, length, active)
+        if pending is not None:
+            pending.append((active, o_local, d, length))
         radiance = dr.gather(dev.Vector3d, lt.radiance, light)
         acc = acc + dr.select(active & ~blocked, weight, 0.0) * radiance
         count = count + dr.select(active, U(1), U(0))
@@ -409,7 +416,16 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
             extra = extra + traced
         return k + 1, acc, count, extra
 
-    k, acc, count, extra = dr.while_loop((k, acc, count, extra), lambda k, acc, count, extra: k < n_s, body)
+    if record is None:
+        k, acc, count, extra = dr.while_loop((k, acc, count, extra), lambda k, acc, count, extra: k < n_s, body)
+    else:
+        for _ in range(samples):
+            k, acc, count, extra = body(k, acc, count, extra)
+            dr.eval(k, acc, count, extra)
+        for active, o_sel, d_sel, length in pending:
+            idx = dr.compress(dev.Bool(active))
+            record.append(("o", dev.raw_ray(dr.gather(dev.Point3f, o_sel, idx), dr.gather(dev.Vector3f, d_sel, idx),
+                                            dr.gather(F, length, idx))))
     out = acc * inv_n * (dev.Vector3d(g.albedo) * INV_PI)
     img = DeviceImage(dev, g.width, g.height, dev.Vector3f(out))
     dev.eval(img.rgb, count, extra)

@@ -380,3 +380,42 @@ def test12_device_depth_peeling_gives_the_host_passes_layers(backend, scene_name
     else:
         assert (got.prim == want.prim).mean() >= 0.99
         at_parity(got.t[got.valid & want.valid], want.t[got.valid & want.valid], share=0.99)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name", ["arena", "cornell"])
+def test13_device_direct_light_of_the_fragments_is_the_host_estimate(backend, scene_name, at_parity):
+    # arena: 73 point lights, hard shadows (the normals rounded to float32 as the device G-buffer keeps them move a
+    # few grazing shadow rays); cornell: an area light, sampled with other random numbers (within noise, paired
+    # per fragment).
+    from methods.layered_pvs import device
+    from suite.harness import runner
+
+    scene, _, frag = _fragments(scene_name, size=(64, 36))
+    tracer = runner.make_tracer(backend, scene)
+    tracer.update(0.5)
+    got = tracer.device.to_host(device.direct_light(tracer.device, scene, frag, 0.5, 8, seed=4))
+    want = sv.direct_illumination(scene, _host_view(tracer), frag, 0.5, 8, 5).astype(np.float64)
+    assert got.shape == want.shape == (len(frag.position), 3) and want.mean() > 0.01
+    if scene_name == "arena":
+        at_parity(got, want, share=0.995, rtol=1e-5, atol=1e-6)
+    else:
+        diff = got - want
+        se = diff.std(axis=0, ddof=1) / np.sqrt(len(diff))
+        assert np.all(np.abs(diff.mean(axis=0)) < 5 * se), f"device {got.mean(axis=0)} vs host {want.mean(axis=0)}"
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test14_device_moments_are_the_host_kernels(drjit_device, backend):
+    from methods.layered_pvs import device, kernels
+
+    dev = drjit_device(backend)
+    rng = np.random.default_rng(6)
+    n, spp = 500, 3
+    sample, direct = rng.random((n * spp, 3)) * 2, rng.random((n, 3)).astype(np.float32)
+    illum, m1, m2 = np.empty((n, 3), np.float32), np.empty(n), np.empty(n)
+    kernels.jit()["_path_moments"](sample, direct.astype(np.float64), n, spp, illum, m1, m2)
+    got = device.path_moments(dev, dev.to_device(sample, dev.Vector3d), dev.to_device(direct, dev.Vector3d), n, spp)
+    assert np.array_equal(got[0], illum)
+    for a, b in zip(got[1:], (m1, m2)):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
