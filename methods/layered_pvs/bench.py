@@ -35,7 +35,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from suite import fileio
-from suite.core.trace.recording import RecordingTracer
+from suite.core.trace.recording import RecordingTracer, device_replay
 from suite.errors import UserError
 
 DEFAULT_RESOLUTIONS = ("160x90", "480x270", "960x540")
@@ -139,27 +139,6 @@ def _replay(tracer, log):
     return rays, replay, raw
 
 
-def _device_replay(dev, log, records):
-    """(rays, replay function, True) for a stage on a Dr.Jit backend: the queries it made on the device
-    (``records``: ``("i" | "o", Ray3f)``, :func:`methods.layered_pvs.device.recording`) and through the numpy
-    interface (``log``: the primary fragments' shadow rays), every ray replayed device-resident on the backend's raw
-    ``ray_intersect_preliminary`` / ``ray_test`` (the logged rays uploaded once, outside the timed calls), each call
-    timed to its end."""
-    calls = [(kind, dev.raw_ray(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f),
-                                dev.to_device(length, dev.Float))) for kind, o, d, length in log] + list(records)
-    rays = int(sum(dev.dr.width(ray.d) for _, ray in calls))
-
-    def replay() -> float:
-        elapsed = 0.0
-        for kind, ray in calls:
-            t0 = time.perf_counter()
-            (dev.raw_intersect if kind == "i" else dev.raw_occluded)(ray)
-            elapsed += time.perf_counter() - t0
-        return elapsed
-
-    return rays, replay, True
-
-
 @contextmanager
 def _kept_inputs(module, name: str):
     """Keeps the data arguments of the update's call of ``module.name`` (the layered SVGF,
@@ -217,7 +196,7 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
             if dev is None:
                 replays = {stage: _replay(tracer, ctx.stage_log[stage]) for stage in SERVER_STAGES}
             else:  # raw on a Dr.Jit backend: rays in device memory (numpy-fed raw calls convert every ray)
-                replays = {stage: _device_replay(dev, ctx.stage_log[stage], device_rays.get(stage, []))
+                replays = {stage: (*device_replay(dev, ctx.stage_log[stage], device_rays.get(stage, [])), True)
                            for stage in SERVER_STAGES}
             stage_ms = {stage: [] for stage in SERVER_STAGES}
             raw_ms = {stage: [] for stage in SERVER_STAGES}

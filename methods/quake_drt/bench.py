@@ -12,7 +12,9 @@ running anything:
     the direct stage (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion
     query on the rays it generated (captured from an untimed run); the secondary stage (mirror, glass and water
     chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced (recorded
-    in an untimed run). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
+    in an untimed run). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded
+    once, outside the timed calls); the numpy-fed raw entry points are timed beside it (``raw_numpy_ms``,
+    ``ratio_numpy``). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
     benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
     names the scene. Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct
     stage has work. ``by_pixels``: each stage's ms and ratio at that size and at the ``--rays-larger`` sizes (a
@@ -66,12 +68,32 @@ def _median_ms(fn, repeats: int):
     return 1e3 * float(np.median(times)), result
 
 
-def _interleaved_ms(stage, raw, repeats: int) -> tuple[float, float]:
-    """(median ms of ``stage``, median ms of ``raw``), the two run in turn (:func:`suite.core.trace.bench.interleaved`)."""
+def _against_raw(stage, log, tracer, repeats: int, numpy_raw) -> dict:
+    """``ms`` of ``stage`` and ``raw_ms`` of the backend alone on the stage's rays (``log``: ``("i" | "o", origins,
+    directions, lengths)`` in the tracing frame), run in turn (medians). On a Dr.Jit backend raw is the backend on
+    rays in device memory (uploaded once, here: :func:`suite.core.trace.recording.device_replay`), and the numpy-fed
+    raw entry points (``numpy_raw``) are timed beside it as ``raw_numpy_ms``; elsewhere raw is ``numpy_raw``."""
     from suite.core.trace.bench import interleaved
+    from suite.core.trace.recording import device_replay
 
-    t = interleaved([("stage", stage), ("raw", raw)], repeats)
-    return 1e3 * t["stage"], 1e3 * t["raw"]
+    dev = getattr(tracer, "device", None)
+    if dev is None:
+        t = interleaved([("stage", stage), ("raw", numpy_raw)], repeats)
+        return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "raw entry points"}
+    _, replay = device_replay(dev, log)
+    t = interleaved([("stage", stage), ("raw", replay), ("raw_numpy", numpy_raw)], repeats)
+    return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "device-resident rays",
+            "raw_numpy_ms": 1e3 * t["raw_numpy"]}
+
+
+def _rates(entry: dict, rays: int, raw_rays: int) -> dict:
+    """The entry's rays per second and its ratios to raw (and to the numpy-fed raw where it was timed)."""
+    ms, raw_ms = entry["ms"], entry["raw_ms"]
+    out = {**entry, "rays": rays, "rays_per_s": rays / (ms / 1e3), "raw_rays": raw_rays,
+           "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
+    if "raw_numpy_ms" in entry:
+        out["ratio_numpy"] = (rays / ms) / (raw_rays / entry["raw_numpy_ms"])
+    return out
 
 
 def load_scene(name: str):
@@ -145,11 +167,8 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
             tracer.raw_intersect(ro, rd, rlen.copy())  # embreex overwrites the lengths it is given
 
     short = max(repeats, SHORT_STAGE_REPEATS)
-    prim_ms, raw_prim_ms = _interleaved_ms(prim, raw_primary, short)  # interleaved: noise hits both alike
-    prim_rays = f.rays(prim)
-    out = {"primary": {"ms": prim_ms, "repeats": short, "rays": prim_rays, "rays_per_s": prim_rays / (prim_ms / 1e3),
-                       "raw_ms": raw_prim_ms, "raw_rays": raw_rays, "raw_rays_per_s": raw_rays / (raw_prim_ms / 1e3),
-                       "ratio": (prim_rays / prim_ms) / (raw_rays / raw_prim_ms)}}
+    timed = _against_raw(prim, [("i", ro, rd, rlen) for ro, rd, _, rlen in sets], tracer, short, raw_primary)
+    out = {"primary": {**_rates(timed, f.rays(prim), raw_rays), "repeats": short}}
     raw = f.raw()
     captured = []
     f.direct(raw, capture=captured)
@@ -158,15 +177,14 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     l_all = np.concatenate([c[2] for c in captured]) if captured else np.zeros(0, np.float32)
     dir_rays = f.rays(lambda: f.direct(raw))
     if len(o_all):
-        dir_ms, raw_ms = _interleaved_ms(lambda: f.direct(raw), lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()),
-                                         repeats)
+        timed = _against_raw(lambda: f.direct(raw), [("o", o_all, d_all, l_all)], tracer, repeats,
+                             lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()))
+        out["direct"] = _rates(timed, dir_rays, int(len(o_all)))
     else:
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
-        raw_ms = float("nan")
-    out["direct"] = {"ms": dir_ms, "repeats": repeats, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3),
-                     "raw_ms": raw_ms, "raw_rays": int(len(o_all)), "raw_rays_per_s": len(o_all) / (raw_ms / 1e3),
-                     "ratio": (dir_rays / dir_ms) / (len(o_all) / raw_ms) if len(o_all) else float("nan"),
-                     "shadow_rays": int(len(o_all))}
+        out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3),
+                         "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
+    out["direct"].update(repeats=repeats, shadow_rays=int(len(o_all)))
     out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, short, backend)
     return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
             "num_random_dl 0 (every culled light), antialiasing on", **out}
@@ -208,10 +226,9 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
         return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
                 "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
 
-    ms, raw_ms = _interleaved_ms(stage, recorder.replay, repeats)
-    rays = f.rays(stage)  # backend queries: the continuation rays and any alpha walk past transparent texels
-    return {**entry, "ms": ms, "rays": rays, "rays_per_s": rays / (ms / 1e3), "raw_ms": raw_ms, "raw_rays": raw_rays,
-            "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
+    timed = _against_raw(stage, recorder.log, tracer, repeats, recorder.replay)
+    # backend queries: the continuation rays and any alpha walk past transparent texels
+    return {**entry, **_rates(timed, f.rays(stage), raw_rays)}
 
 
 def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()) -> dict:
@@ -455,9 +472,10 @@ def format_results(out: dict) -> str:
             if s is None:
                 continue
             where = f"   on {s['scene']}" if s.get("scene", r["scene"]) != r["scene"] else ""
+            numpy_fed = f" (numpy-fed raw: {s['ratio_numpy']:.3f})" if "ratio_numpy" in s else ""
             lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
-                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}   "
-                         f"median of {s.get('repeats', r['repeats'])}{where}")
+                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}"
+                         f"{numpy_fed}   median of {s.get('repeats', r['repeats'])}{where}")
         for row in r.get("by_pixels", [])[1:]:  # the first is the table above
             lines.append(f"  at {row['resolution'][0]}x{row['resolution'][1]}: "
                          + "   ".join(f"{st} {row[st + '_ratio']:.3f}" for st in ("primary", "secondary", "direct")

@@ -81,3 +81,27 @@ class RecordingTracer:
                 tracer.raw_intersect(o, d, length.copy())
             else:
                 tracer.raw_occluded(o, d, length)
+
+
+def device_replay(dev, log=(), records=()):
+    """(rays, replay) on a Dr.Jit ``dev``: the queries of ``log`` (:attr:`RecordingTracer.log` entries, uploaded once,
+    here) and ``records`` (``("i" | "o", Ray3f)`` already in device memory) on the backend's raw
+    ``ray_intersect_preliminary`` / ``ray_test`` of Dr.Jit arrays: the "raw" of a ratio on a Mitsuba llvm/cuda
+    backend (rays that stay in the backend's memory). ``replay()`` returns the seconds the calls took, each timed to
+    its end."""
+    import time
+
+    calls = [(kind, dev.raw_ray(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f),
+                                dev.to_device(np.asarray(length, np.float32), dev.Float))) for kind, o, d, length in log]
+    calls += list(records)
+    rays = int(sum(dev.dr.width(ray.d) for _, ray in calls))
+
+    def replay() -> float:
+        elapsed = 0.0
+        for kind, ray in calls:
+            t0 = time.perf_counter()
+            (dev.raw_intersect if kind == "i" else dev.raw_occluded)(ray)
+            elapsed += time.perf_counter() - t0
+        return elapsed
+
+    return rays, replay

@@ -1,7 +1,10 @@
 """``splitbench bench layered_pvs`` stores its figures and images where the report reads them."""
 import json
 
+import pytest
+
 from methods.layered_pvs import bench
+from suite.core.trace import backend_params
 
 
 def test01_bench_stores_stage_ratios_codec_rates_client_cost_and_images(tmp_path):
@@ -71,3 +74,29 @@ def test03_the_report_states_how_many_rows_meet_the_ratio_goal_and_from_which_si
     assert "path_trace 0.700-0.920 of raw, 1 of 4 rows at >= 0.9 (not at the largest size)" in \
         report.ratio_goal_text(rows)
     assert report.ratio_goal_text([]) == ""
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+@pytest.mark.parametrize("scene_name", ["living_room", "cornell"])
+def test04_on_a_drjit_backend_each_stage_replays_every_ray_it_traced(backend, scene_name):
+    """On a Dr.Jit backend the server traces on the device: the recording keeps the device passes' rays (PVS views,
+    peeling, the fragments' shadow rays to point and area lights, the path bounces) and the numpy-fed queries, and
+    each stage's replay holds as many rays as the stage counted (no alpha-tested surfaces here, whose walk adds
+    queries the replay does not make); the bench's row takes them."""
+    from methods.layered_pvs import device
+    from suite.core.scene import load
+    from suite.core.trace import make
+    from suite.core.trace.recording import device_replay
+
+    scene = load(scene_name)
+    tracer = make(backend, scene)
+    dev = tracer.device
+    params = {**bench.DEFAULT_PARAMS, "layers": 2}
+    with device.recording({}) as records:
+        ctx, _, _, _ = bench.one_update(scene, bench.RecordingTracer(tracer, device=True), params, (32, 18), 0.5, 0.6)
+    for stage in bench.SERVER_STAGES:
+        rays, replay = device_replay(dev, ctx.stage_log[stage], records.get(stage, []))
+        assert rays == ctx.stage_rays[stage] > 0, stage
+        assert replay() > 0
+    row = bench.server_rows(scene, tracer, params, [(32, 18)], [2], 0.5, repeats=1)[0]
+    assert all(row[f"{st}_rays"] == ctx.stage_rays[st] and row[f"{st}_ratio"] > 0 for st in bench.SERVER_STAGES)

@@ -7,6 +7,7 @@ import math
 import pytest
 
 from methods.quake_drt import bench
+from suite.core.trace import backend_params
 
 
 def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys):
@@ -59,3 +60,20 @@ def test02_the_fit_through_the_origin_is_a_rate_per_megapixel():
     noisy = bench.fit_ms_per_mp([0.01, 0.02], [30.0, 25.0])
     assert noisy["ms_per_mp"] > 0 and noisy["exponent"] < 0
     assert bench.fit_ms_per_mp([0.01], [3.0]) == {} and bench.fit_ms_per_mp([0.01, 0.02], [0.0, 1.0]) == {}
+
+
+@pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))
+def test03_on_a_drjit_backend_raw_is_the_backend_on_device_resident_rays(backend):
+    """Issue 9's raw: on a Mitsuba llvm/cuda backend each stage is compared with the backend on its rays in device
+    memory; the numpy-fed raw entry points are timed beside it."""
+    from suite.harness import runner
+
+    scene = bench.load_scene("two_rooms")
+    tracer = runner.make_tracer(backend, scene)
+    r = bench.bench_rays(scene, tracer, (48, 27), 0.5, 1, backend)
+    for stage in ("primary", "direct", "secondary"):
+        s = r[stage]
+        assert s["raw"] == "device-resident rays" and s["raw_ms"] > 0 and s["raw_numpy_ms"] > 0, stage
+        assert math.isfinite(s["ratio"]) and math.isfinite(s["ratio_numpy"]) and s["raw_rays"] > 0, stage
+    assert r["direct"]["rays"] == r["direct"]["raw_rays"]
+    assert "numpy-fed raw" in bench.format_results({"rays": {**r, "backend": backend}})
