@@ -379,7 +379,7 @@ def test13_grey_and_rgb_albedo_maps_read_alike_on_device_and_host(backend):
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-def test14_area_lights_recording_their_rays_give_the_same_image(backend):
+def test14_area_lights_recording_their_rays_give_the_same_image(backend, at_parity):
     """A benchmark's recording runs the samples one after the other: the same image, and the recorded shadow rays
     are the ones the pass counts (gallery: the alpha walk adds closest-hit queries, not shadow rays)."""
     from suite.core.device import render_gbuffer
@@ -393,7 +393,11 @@ def test14_area_lights_recording_their_rays_give_the_same_image(backend):
     before = tracer.counters["rays_occluded"]
     rays = []
     recorded = device_shading.area_light_radiance(dg, area, tracer, 4, seed=3, record=rays).to_host()
-    assert np.array_equal(recorded, plain) and plain.max() > 0
+    assert plain.max() > 0
+    if backend == "mitsuba-llvm":
+        assert np.array_equal(recorded, plain)
+    else:  # a kernel per sample instead of one loop: the compiler may contract other multiply-adds
+        at_parity(recorded, plain, share=1.0, rtol=1e-5, atol=1e-7)
     assert len(rays) == 4 and {kind for kind, _ in rays} == {"o"}
     widths = sum(tracer.device.dr.width(ray.d) for _, ray in rays)
     assert widths == tracer.counters["rays_occluded"] - before > 0
