@@ -217,7 +217,8 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
                 ctx.stage_ms[stage] = float(np.median(stage_ms[stage]))
             n_rays = sum(per_stage[f"{s}_rays"] for s in SERVER_STAGES)
             rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, "repeats": reps,
-                         "raw": "backend raw entry points" if replays["pvs"][2] else "suite queries (no raw entry)",
+                         "raw": ("backend on device-resident rays" if dev is not None else "backend raw entry points")
+                         if replays["pvs"][2] else "suite queries (no raw entry)",
                          **per_stage, **{f"{k}_ms": round(v, 2) for k, v in ctx.stage_ms.items()},
                          "client_decode_ms": cctx.stage_ms.get("decode"), "client_peel_ms": cctx.stage_ms.get("peel"),
                          "client_render_ms": cctx.stage_ms.get("render"),

@@ -100,3 +100,4 @@ def test04_on_a_drjit_backend_each_stage_replays_every_ray_it_traced(backend, sc
         assert replay() > 0
     row = bench.server_rows(scene, tracer, params, [(32, 18)], [2], 0.5, repeats=1)[0]
     assert all(row[f"{st}_rays"] == ctx.stage_rays[st] and row[f"{st}_ratio"] > 0 for st in bench.SERVER_STAGES)
+    assert row["raw"] == "backend on device-resident rays"
