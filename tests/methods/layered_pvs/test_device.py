@@ -419,3 +419,44 @@ def test14_device_moments_are_the_host_kernels(drjit_device, backend):
     assert np.array_equal(got[0], illum)
     for a, b in zip(got[1:], (m1, m2)):
         np.testing.assert_allclose(a, b, rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test15_updates_made_on_the_device_are_deterministic_and_keep_the_hard_cases(backend):
+    # The whole server update on a Dr.Jit tracer: a rerun gives the same bytes (counter-based random numbers keyed
+    # by lane, seeded from the update's generator); a camera outside the room looking away gives an empty PVS, no
+    # fragment and no tile, and a black client frame, as on Embree (tests/methods/layered_pvs/test_method.py test03);
+    # a static camera's client frame shows the update.
+    from methods.layered_pvs import bench
+    from methods.layered_pvs.method import LayeredPVS
+    from suite.core.scene.model import CameraPose
+    from suite.harness import runner
+
+    scene = runner.load_scene("living_room")
+    tracer = runner.make_tracer(backend, scene)
+    params = {**bench.DEFAULT_PARAMS, "layers": 3, "spp": 1, "max_depth": 4}
+    res = (64, 36)
+
+    def update(pose, seed=0):
+        server = LayeredPVS(dict(params))
+        ctx = bench.LocalContext(scene, tracer, 0.5, res, 0, pose, seed=seed)
+        server.server_update(ctx)
+        return ctx
+
+    def show(ctx, pose):
+        client = LayeredPVS(dict(params))
+        cctx = bench.client_context(pose, scene.camera.fov_deg, 0.5, res)
+        return client.client_frame(cctx, bench.delivered_update(ctx.sent["update"], 0, 0.5)), cctx.outputs
+
+    pose = scene.camera.pose_at(0.5)
+    first, again = update(pose), update(pose)
+    assert first.sent["update"] == again.sent["update"] and first.outputs["host_device_bytes"] > 0
+    assert first.sent["update"] != update(pose, seed=1).sent["update"]
+    img, out = show(first, pose)
+    assert out["rejected_updates"] == 0 and out["no_hit_pixels"] == 0 and img.mean() > 0
+    lo, hi = scene.bounds()
+    away = CameraPose(hi + 10.0, hi + 20.0, np.array([0.0, 1.0, 0.0]))
+    empty = update(away)
+    assert empty.outputs["pvs_triangles"] == 0 and empty.outputs["fragments"] == 0 and empty.outputs["tiles"] == 0
+    img, out = show(empty, away)
+    assert out["rejected_updates"] == 0 and (img == 0).all() and out["no_hit_pixels"] == res[0] * res[1]
