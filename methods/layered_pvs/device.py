@@ -491,9 +491,10 @@ class DeviceLights:
 
 def _choose_light(dev, lt: DeviceLights, p, u_sel):
     """(light index UInt32, selection probability Float64) per lane, as ``LightSampler.choose``: in proportion to the
-    irradiance bound ``power / max(d^2, min_d2)`` at the point (two symbolic loops over the lights: the total, then
-    the first light whose running sum reaches ``u * total``), or, with more than ``PER_POINT_LIGHTS`` lights, to
-    power (a binary search of the CDF)."""
+    irradiance bound ``power / max(d^2, min_d2)`` at the point (the total, then the first light whose running sum
+    reaches ``u * total``: written out over broadcast scalars for a few lights, :attr:`DeviceLights.unrolled`, else
+    two symbolic loops over a light table), or, with more than ``PER_POINT_LIGHTS`` lights, to power (a binary
+    search of the CDF)."""
     dr, F64, U = dev.dr, dev.Float64, dev.UInt32
     n = dr.width(u_sel)
     last = lt.count - 1
