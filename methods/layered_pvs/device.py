@@ -596,7 +596,7 @@ def _light_sample(dev, lt: DeviceLights, p, j, pmf, is_point, u4, u5):
     return y, w, good
 
 
-def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int):
+def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed: int, position=None):
     """The indirect part of the layered path tracer (``server.path_trace``, §4.4) on the device: ``spp`` paths per
     fragment (lane ``k * n + i`` is sample ``k`` of fragment ``i``), cosine-weighted Lambertian bounces, Russian
     roulette from vertex ``rr_depth`` on, and next-event estimation towards one light at every later vertex (chosen
@@ -604,7 +604,8 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     counter-based random numbers (TEA, keyed by lane and draw) instead of numpy's, so the two agree within noise.
 
     Returns the (n * spp) float64 path contributions (Vector3d, evaluated: demodulated, the primary fragment's albedo
-    left out, its direct light not included); the fragments go up once. Each bounce is one kernel (its
+    left out, its direct light not included); the fragments go up once (``position``: their positions already on
+    the device, :func:`fragment_gbuffer`'s). Each bounce is one kernel (its
     closest-hit query, the hit's attributes, the light's choice and sample, the shadow query); the lanes stay in
     place (masked) from bounce to bounce. Its queries' rays are recorded under ``"path_trace"`` (:func:`recording`)."""
     from suite.core.device.gbuffer import hit_surface
@@ -620,7 +621,9 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     lt = DeviceLights(dev, lights)
     lane = dev.arange(total)
     fi = lane % dev.opaque(U, n)
-    p = dr.gather(dev.Point3d, dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d), fi)
+    if position is None:
+        position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
+    p = dr.gather(dev.Point3d, position, fi)
     ng = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
     ns = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
     thr = dr.full(dev.Vector3d, 1.0, total)
@@ -707,15 +710,16 @@ def fragment_gbuffer(dev, frag):
     return g
 
 
-def direct_light(dev, scene, frag, t_s: float, area_samples: int, seed: int):
+def direct_light(dev, scene, frag, t_s: float, area_samples: int, seed: int, g=None):
     """``server.direct_illumination`` on the device: the suite's direct-lighting kernels
     (:func:`suite.core.shading.compose_direct` with :mod:`suite.core.device.shading`: every point light with its own
     shadow ray, area lights with ``area_samples`` stratified samples and counter-based random numbers) on
-    :func:`fragment_gbuffer`. Returns the demodulated light per fragment (Vector3d, on the device)."""
+    :func:`fragment_gbuffer` (``g``, made here when not given). Returns the demodulated light per fragment
+    (Vector3d, on the device)."""
     from suite.core import shading
     from suite.core.device import shading as device_shading
 
-    g = fragment_gbuffer(dev, frag)
+    g = fragment_gbuffer(dev, frag) if g is None else g
     kernels = device_shading
     if _RECORDS is not None:  # the shadow rays of both kinds of light, for the benchmark's raw replay
         rays = _RECORDS.setdefault("path_trace", [])
@@ -763,14 +767,11 @@ def recording(records: dict):
 
 
 def _record(dev, stage: str, kind: str, active, o_local, d, length) -> None:
+    """A query's rays (the lanes where ``active`` holds; every lane where it is None) into the records of ``stage``."""
     if _RECORDS is None:
         return
-    dr = dev.dr
-    if active is not None:
-        idx = dr.compress(dev.Bool(active))
-        o_local, d, length = (dr.gather(dev.Point3f, o_local, idx), dr.gather(dev.Vector3f, d, idx),
-                              dr.gather(dev.Float, length, idx))
-    _RECORDS.setdefault(stage, []).append((kind, dev.raw_ray(o_local, d, length)))
+    ray = dev.raw_ray(o_local, d, length) if active is None else dev.compacted_ray(active, o_local, d, length)
+    _RECORDS.setdefault(stage, []).append((kind, ray))
 
 
 def compute_pvs(dev, views, fov_deg: float, width: int, height: int) -> np.ndarray:

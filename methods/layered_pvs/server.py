@@ -614,7 +614,7 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     not depend on the order the threads ran in.
 
     On a Dr.Jit tracer (``tracer.device``) the paths run as device kernels instead
-    (:func:`methods.layered_pvs.device.path_trace`: the same estimator with counter-based random numbers, so the
+    (:func:`methods.layered_pvs.device.path_samples`: the same estimator with counter-based random numbers, so the
     illumination agrees with the host passes' within noise, not bit for bit)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
@@ -627,9 +627,10 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
         # estimators, other samples); the moments come back.
         from methods.layered_pvs import device as layered_device
 
-        direct = layered_device.direct_light(device, scene, frag, t_s, max(int(spp), 1), seed)
+        g = layered_device.fragment_gbuffer(device, frag)  # the fragments go up once, for both
+        direct = layered_device.direct_light(device, scene, frag, t_s, max(int(spp), 1), seed, g=g)
         sample = layered_device.path_samples(device, frag, lights, spp, max_depth, rr_depth,
-                                             int(rng.integers(1 << 31)))
+                                             int(rng.integers(1 << 31)), position=g.position)
         return layered_device.path_moments(device, sample, direct, n, spp)
     from concurrent.futures import ThreadPoolExecutor
 

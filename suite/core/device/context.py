@@ -506,6 +506,14 @@ class Device:
         self.dr.eval(ray)
         return ray
 
+    def compacted_ray(self, active, o_local, d, length):
+        """The tracing-frame rays of the lanes where ``active`` holds, gathered into an evaluated ``Ray3f``: the very
+        rays a masked query traced, for a raw replay (:func:`suite.core.trace.recording.device_replay`)."""
+        dr = self.dr
+        idx = dr.compress(self.Bool(active))
+        return self.raw_ray(dr.gather(self.Point3f, o_local, idx), dr.gather(self.Vector3f, d, idx),
+                            dr.gather(self.Float, length, idx))
+
     def raw_occluded(self, ray):
         out = self.tracer.mscene.ray_test(ray, coherent=False)
         self.eval(out)

@@ -422,10 +422,7 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
         for _ in range(samples):
             k, acc, count, extra = body(k, acc, count, extra)
             dr.eval(k, acc, count, extra)
-        for active, o_sel, d_sel, length in pending:
-            idx = dr.compress(dev.Bool(active))
-            record.append(("o", dev.raw_ray(dr.gather(dev.Point3f, o_sel, idx), dr.gather(dev.Vector3f, d_sel, idx),
-                                            dr.gather(F, length, idx))))
+        record += [("o", dev.compacted_ray(*rays)) for rays in pending]
     out = acc * inv_n * (dev.Vector3d(g.albedo) * INV_PI)
     img = DeviceImage(dev, g.width, g.height, dev.Vector3f(out))
     dev.eval(img.rgb, count, extra)
