@@ -10,7 +10,9 @@ running anything:
     stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus
     anti-aliased shading rays, attributes, overlays) against the raw closest-hit query on its two camera ray sets;
     the direct stage (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion
-    query on the rays it generated (captured from an untimed run); the secondary stage (mirror, glass and water
+    query on the rays it generated (captured from an untimed run; on a Dr.Jit backend the stage is the device kernel
+    of methods/quake_drt/device_direct.py, and its rays are recorded per iteration of its loop over light samples,
+    in the order it traces them); the secondary stage (mirror, glass and water
     chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced (recorded
     in an untimed run). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded
     once, outside the timed calls); the numpy-fed raw entry points are timed beside it (``raw_numpy_ms``,
@@ -68,11 +70,12 @@ def _median_ms(fn, repeats: int):
     return 1e3 * float(np.median(times)), result
 
 
-def _against_raw(stage, log, tracer, repeats: int, numpy_raw) -> dict:
+def _against_raw(stage, log, tracer, repeats: int, numpy_raw, records=()) -> dict:
     """``ms`` of ``stage`` and ``raw_ms`` of the backend alone on the stage's rays (``log``: ``("i" | "o", origins,
-    directions, lengths)`` in the tracing frame), run in turn (medians). On a Dr.Jit backend raw is the backend on
-    rays in device memory (uploaded once, here: :func:`suite.core.trace.recording.device_replay`), and the numpy-fed
-    raw entry points (``numpy_raw``) are timed beside it as ``raw_numpy_ms``; elsewhere raw is ``numpy_raw``."""
+    directions, lengths)`` in the tracing frame; ``records``: ``("i" | "o", Ray3f)`` a device pass recorded), run in
+    turn (medians). On a Dr.Jit backend raw is the backend on rays in device memory (``log`` uploaded once, here:
+    :func:`suite.core.trace.recording.device_replay`), and the numpy-fed raw entry points (``numpy_raw``) are timed
+    beside it as ``raw_numpy_ms``; elsewhere raw is ``numpy_raw``."""
     from suite.core.trace.bench import interleaved
     from suite.core.trace.recording import device_replay
 
@@ -80,7 +83,7 @@ def _against_raw(stage, log, tracer, repeats: int, numpy_raw) -> dict:
     if dev is None:
         t = interleaved([("stage", stage), ("raw", numpy_raw)], repeats)
         return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "raw entry points"}
-    _, replay = device_replay(dev, log)
+    _, replay = device_replay(dev, log, records)
     t = interleaved([("stage", stage), ("raw", replay), ("raw_numpy", numpy_raw)], repeats)
     return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "device-resident rays",
             "raw_numpy_ms": 1e3 * t["raw_numpy"]}
@@ -172,13 +175,22 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     raw = f.raw()
     captured = []
     f.direct(raw, capture=captured)
-    o_all = np.concatenate([c[0] for c in captured]) if captured else np.zeros((0, 3), np.float32)
-    d_all = np.concatenate([c[1] for c in captured]) if captured else np.zeros((0, 3), np.float32)
-    l_all = np.concatenate([c[2] for c in captured]) if captured else np.zeros(0, np.float32)
+    # The stage's shadow rays as it traced them: host chunks (o, d, length), or on a Dr.Jit backend the device loop's
+    # rays per iteration ("o", Ray3f), already in device memory (copied to numpy here for the numpy-fed raw only).
+    records = [c for c in captured if len(c) == 2]
+    chunks = [c for c in captured if len(c) == 3]
+    dev = getattr(tracer, "device", None)
+    for _, ray in records:
+        o, d = dev.to_host(ray.o, np.float32), dev.to_host(ray.d, np.float32)
+        chunks.append((o, d, dev.to_host(ray.maxt, np.float32)))
+    o_all = np.concatenate([c[0] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
+    d_all = np.concatenate([c[1] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
+    l_all = np.concatenate([c[2] for c in chunks]) if chunks else np.zeros(0, np.float32)
     dir_rays = f.rays(lambda: f.direct(raw))
     if len(o_all):
-        timed = _against_raw(lambda: f.direct(raw), [("o", o_all, d_all, l_all)], tracer, repeats,
-                             lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()))
+        log = [("o", *c) for c in captured if len(c) == 3]
+        timed = _against_raw(lambda: f.direct(raw), log, tracer, repeats,
+                             lambda: tracer.raw_occluded(o_all, d_all, l_all.copy()), records)
         out["direct"] = _rates(timed, dir_rays, int(len(o_all)))
     else:
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)

@@ -489,19 +489,23 @@ def trace_shadow(tracer, o_local, d, length, skip_faces=None):
 
 def shade(points: ShadingPoints, lights, table, rows: np.ndarray, k: int, mode: str, soft: bool, tracer, scene,
           min_distance: float, chunk_rays: int = DEFAULT_CHUNK_RAYS, skip_faces=None,
-          row_cdf: np.ndarray | None = None, capture: list | None = None) -> tuple[np.ndarray, DirectStats]:
+          row_cdf: np.ndarray | None = None, capture: list | None = None,
+          on_device: bool = True) -> tuple[np.ndarray, DirectStats]:
     """(N, 3) illumination of every shading point (radiance / albedo for Lambertian points, radiance for glossy
     ones) and the work done. ``rows`` are the table rows the points read (:func:`.culling.point_rows`).
-    ``capture``: a list that receives a copy of every chunk of rays ``(o, d, length)`` in the tracer's frame (the
-    benchmark traces them again through the backend's raw query)."""
+    ``capture``: a list that receives the shadow rays the stage traces, for the benchmark's raw replay: on the host
+    path a copy of every chunk ``(o, d, length)`` in the tracer's frame, on the device path ``("o", Ray3f)`` per
+    iteration of the device loop.
+
+    On a Dr.Jit backend (a tracer with a ``device``; ``on_device`` False forces the host path) the Lambertian points
+    are shaded by the device kernel of :mod:`methods.quake_drt.device_direct` (the same bits on ``llvm_ad_rgb``) and
+    glossy ones, whose BSDF has no device kernel, by the host path."""
     n = len(points)
-    out = np.zeros((n, 3), np.float64)
     stats = DirectStats()
     if n == 0 or len(lights) == 0:
-        return out, stats
+        return np.zeros((n, 3), np.float64), stats
     if mode not in MODES:
         raise ValueError(f"unknown light sampling mode '{mode}'")
-    mode_code = MODES.index(mode)
     if row_cdf is None:
         if mode == "power":
             row_cdf = row_power_cdf(table.row_offsets, table.row_lights, lights.power)
@@ -510,6 +514,52 @@ def shade(points: ShadingPoints, lights, table, rows: np.ndarray, k: int, mode: 
         else:
             row_cdf = np.zeros(len(table.row_lights))
     rows = np.ascontiguousarray(rows, np.int64)
+    dev = getattr(tracer, "device", None) if on_device else None
+    if dev is None:
+        return _shade_host(points, lights, table, rows, k, mode, soft, tracer, scene, min_distance, chunk_rays,
+                           skip_faces, row_cdf, capture)
+    return _shade_device(dev, points, lights, table, rows, k, mode, soft, tracer, scene, min_distance, chunk_rays,
+                         skip_faces, row_cdf, capture)
+
+
+def _shade_device(dev, points, lights, table, rows, k, mode, soft, tracer, scene, min_distance, chunk_rays, skip_faces,
+                  row_cdf, capture):
+    """:func:`shade` on ``dev``: Lambertian points there, glossy ones on the host path (module docstring)."""
+    from methods.quake_drt import device_direct
+
+    out = np.zeros((len(points), 3), np.float64)
+    counts = np.diff(np.asarray(table.row_offsets, np.int64))[rows]
+    stats = DirectStats(candidates=int(counts.sum()), selected=int((counts if k == 0 else np.minimum(counts, k)).sum()))
+    lam = np.asarray(points.lambert, bool)
+    if lam.any():
+        sel = np.nonzero(lam)[0]
+        args = (dev, points.subset(sel), lights, table, rows[sel], int(k), mode, bool(soft), float(min_distance),
+                skip_faces, row_cdf)
+        if capture is not None:
+            device_direct.shade(*args, record=capture)
+        il, rays, visible, extra = device_direct.shade(*args)
+        out[sel] = il
+        stats.rays += rays
+        stats.visible += visible
+        tracer.counters["rays_occluded"] += rays
+        tracer.counters["rays_intersect"] += extra
+    if not lam.all():
+        sel = np.nonzero(~lam)[0]
+        il, st = _shade_host(points.subset(sel), lights, table, rows[sel], k, mode, soft, tracer, scene, min_distance,
+                             chunk_rays, skip_faces, row_cdf, capture)
+        out[sel] = il
+        stats.rays += st.rays
+        stats.visible += st.visible
+    return out, stats
+
+
+def _shade_host(points, lights, table, rows, k, mode, soft, tracer, scene, min_distance, chunk_rays, skip_faces,
+                row_cdf, capture):
+    """:func:`shade` on the host: compiled ray generation pipelined with the backend's occlusion queries."""
+    n = len(points)
+    out = np.zeros((n, 3), np.float64)
+    stats = DirectStats()
+    mode_code = MODES.index(mode)
     counts = np.diff(table.row_offsets)[rows]
     per_point = counts if k == 0 else np.minimum(counts, k)
     widest = int(per_point.max(initial=1))

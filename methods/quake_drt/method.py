@@ -12,7 +12,8 @@ Per frame, all on the client (placement ``local``; :mod:`.pipeline` has the stag
   random branch; optional glossy reflections.
 * **direct** (§6.6, Algorithm 6.2): for each shaded surface, the lights of its PVS row (Table 4.2; all lights
   with ``cull_lights`` off), ``num_random_dl`` of them chosen (0 = all; uniform with weight n/k, or proportional
-  to power), one shadow ray each to a random point of an area light (soft shadows) or the point light.
+  to power), one shadow ray each to a random point of an area light (soft shadows) or the point light. On a
+  Dr.Jit backend one device kernel (:mod:`.device_direct`, the host stage's bits on ``llvm_ad_rgb``).
 * **A-SVGF** (§6.10, Table 6.9): RNG, forward projection of gradient samples, gradient image, gradient a-trous,
   temporal accumulation with gradient-driven alpha, moments / variance, spatial a-trous (5 passes).
 * **composition** (§6.11) and **TAA** (§6.12).
@@ -91,6 +92,9 @@ class QuakeDRT(Method):
         "host_device_bytes": "bytes the A-SVGF (stages 5-7) and TAA copied between host and device memory (on a "
                              "Dr.Jit backend, where they run as device kernels and keep their histories there; 0 on "
                              "the host path)",
+        "direct_device_bytes": "bytes the direct stage copied between host and device memory (on a Dr.Jit backend, "
+                               "where it runs as a device kernel: the shading points and light table up, their "
+                               "illumination back; 0 on the host path)",
         "audit_points": "shading points audited for culling errors",
         "audit_pairs": "(point, culled light) pairs the audit traced",
         "audit_missed": "culled pairs whose light actually reaches the point (unoccluded, facing): culling errors",

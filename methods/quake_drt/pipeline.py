@@ -272,7 +272,11 @@ class Pipeline:
         with stage("direct") as st:
             pts = direct.ShadingPoints.concat([prim_pts, sec.points if sec is not None else None])
             rows = np.concatenate([prim_rows, sec_rows]) if sec is not None else prim_rows
+            dev = getattr(tracer, "device", None)
+            copied0 = dev.copied_bytes if dev is not None else 0
             if s.illumination:
+                # on a Dr.Jit backend a device kernel (methods/quake_drt/device_direct.py): the points go up, their
+                # illumination comes back (counted in direct_device_bytes)
                 il, stats = direct.shade(pts, lights, table, rows, s.num_random_dl, s.light_sampling,
                                          s.soft_shadows, tracer, scene, _min_distance(scene), s.chunk_rays, skip)
             else:
@@ -283,6 +287,7 @@ class Pipeline:
         emission = surf.emission.copy()
         if sec is not None:
             emission += sec.emission
+        info.update(direct_device_bytes=(dev.copied_bytes - copied0) if dev is not None else 0)
         info.update(lights=len(lights), shading_points=len(pts), candidates=stats.candidates,
                     selected=stats.selected, shadow_rays=stats.rays, shadow_rays_visible=stats.visible,
                     points_unclustered=int((rows == table.all_row).sum()) if s.cull_lights and table.n_clusters else 0,
@@ -329,7 +334,7 @@ class Pipeline:
             extra.append(self.raw_frame(scene, tracer, t_s, prev_t_s, more.reshape(-1), None, stage,
                                         suffix=f"_s{i + 1}"))
             for key in ("shadow_rays", "shadow_rays_visible", "candidates", "selected", "shading_points",
-                        "secondary_rays"):
+                        "secondary_rays", "direct_device_bytes"):
                 record[key] += extra[-1].info[key]
         denoised = None
         if s.denoiser:

@@ -77,3 +77,35 @@ def small_map():
     if list_scenes().get(SMALL_MAP, "unavailable").startswith("unavailable"):
         pytest.skip(f"{SMALL_MAP} needs the OpenArena data")
     return SMALL_MAP
+
+
+def _direct_setup(backend="embree", extra_lights=40, glossy_every=7):
+    """(scene, tracer, shading points, lights, light table, rows) of the direct stage on the two-room scene: the
+    jittered primary hits of a 32x24 frame, every ``glossy_every``-th point glossy (0: none)."""
+    from methods.quake_drt import culling, direct, lights as lights_mod, primary
+    from methods.quake_drt.rng import pixel_seeds
+
+    scene, vis = testscenes.two_rooms(door_open=False, lights_in_b=2, extra_lights=extra_lights)
+    scene = testscenes.with_visibility(scene, vis)
+    tracer = make(backend, scene)
+    w, h = 32, 24
+    seeds = pixel_seeds(11, w, h).reshape(-1)
+    o, d = primary.camera_rays(scene, 0.0, w, h, seeds, True)
+    hits = tracer.intersect(o, d.astype(np.float32))
+    s = primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
+    idx = np.nonzero(s.valid)[0]
+    lambert = np.ones(len(idx), bool)
+    if glossy_every:
+        lambert[::glossy_every] = False  # glossy points: no cos_x test (and the host path on a Dr.Jit backend)
+    pts = direct.ShadingPoints(pixel=idx, throughput=np.ones((len(idx), 3)), p=s.p[idx], ng=s.ng_view[idx],
+                               ns=s.ns_view[idx], wi=-s.d[idx], albedo=s.albedo[idx], material=s.material[idx],
+                               prim=s.prim[idx], seed=seeds[idx], lambert=lambert)
+    lights = lights_mod.build_lights(scene, 0.0)
+    table = culling.build_table(vis, "scene", lights, scene.num_faces, 0.0254, True, scene.bounds())
+    rows = culling.point_rows(table, vis, pts.prim, pts.p, pts.ng, "triangle", 0.0254, True)
+    return scene, tracer, pts, lights, table, rows
+
+
+@pytest.fixture
+def direct_setup():
+    return _direct_setup

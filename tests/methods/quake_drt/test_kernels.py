@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from methods.quake_drt import culling, direct, lights as lights_mod, primary, testscenes
+from methods.quake_drt import direct, primary, testscenes
 from methods.quake_drt.rng import pixel_seeds
 from suite.core.shading import SHADOW_TMAX_SCALE
 from suite.core.trace import backend_params, make
@@ -121,27 +121,10 @@ def _jittered_samples(scene, tracer, w, h, seed):
     return seeds, primary.surface_from_hits(scene, 0.0, o, d, hits.prim, hits.u, hits.v, hits.t)
 
 
-def _direct_setup(k_lights=40, soft=True):
-    scene, vis = testscenes.two_rooms(door_open=False, lights_in_b=2, extra_lights=k_lights)
-    scene = testscenes.with_visibility(scene, vis)
-    tracer = make("embree", scene)
-    seeds, s = _jittered_samples(scene, tracer, 32, 24, 11)
-    idx = np.nonzero(s.valid)[0]
-    lambert = np.ones(len(idx), bool)
-    lambert[::7] = False  # glossy points: no cos_x test
-    pts = direct.ShadingPoints(pixel=idx, throughput=np.ones((len(idx), 3)), p=s.p[idx], ng=s.ng_view[idx],
-                               ns=s.ns_view[idx], wi=-s.d[idx], albedo=s.albedo[idx], material=s.material[idx],
-                               prim=s.prim[idx], seed=seeds[idx], lambert=lambert)
-    lights = lights_mod.build_lights(scene, 0.0)
-    table = culling.build_table(vis, "scene", lights, scene.num_faces, 0.0254, True, scene.bounds())
-    rows = culling.point_rows(table, vis, pts.prim, pts.p, pts.ng, "triangle", 0.0254, True)
-    return scene, tracer, pts, lights, table, rows
-
-
 @pytest.mark.parametrize("k,mode,soft", [(0, "uniform", True), (0, "uniform", False), (1, "uniform", True),
                                          (3, "uniform", True), (2, "power", True), (4, "irradiance", False)])
-def test05_one_pass_ray_generation_equals_select_then_rays(k, mode, soft):
-    scene, tracer, pts, lights, table, rows = _direct_setup()
+def test05_one_pass_ray_generation_equals_select_then_rays(k, mode, soft, direct_setup):
+    scene, tracer, pts, lights, table, rows = direct_setup()
     mode_code = direct.MODES.index(mode)
     cdf = {"uniform": np.zeros(len(table.row_lights)),
            "power": direct.row_power_cdf(table.row_offsets, table.row_lights, lights.power),
@@ -202,8 +185,8 @@ def test06_accumulation_equals_bincount():
     assert _same(out, ref)
 
 
-def test07_the_direct_stage_does_not_depend_on_its_chunking(monkeypatch):
-    scene, tracer, pts, lights, table, rows = _direct_setup()
+def test07_the_direct_stage_does_not_depend_on_its_chunking(monkeypatch, direct_setup):
+    scene, tracer, pts, lights, table, rows = direct_setup()
     pts = dataclasses.replace(pts, lambert=np.ones(len(pts), bool))
     md = 0.01
     whole, st_whole = direct.shade(pts, lights, table, rows, 0, "uniform", True, tracer, scene, md, 1 << 24)
