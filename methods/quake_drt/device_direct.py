@@ -128,7 +128,9 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         valid = live
         weight = dr.ones(F64, n_pts)
         dimbase = U(DIM_LIGHTS) + 4 * q
-        if mode == "uniform":
+        if k == 0:
+            j = j_all  # every candidate of every row (k = 0 never subsamples)
+        elif mode == "uniform":
             # Floyd: j = n - k + q, t uniform in [0, j]; t chosen before -> j. "Before" is an earlier candidate equal
             # to t, or an earlier duplicate whose stand-in n - k + m' is t.
             jq = n - k + q
@@ -167,7 +169,7 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         else:
             raise ValueError(f"unknown light sampling mode '{mode}'")
         light = dr.gather(U, tab.row_lights, a + j, valid)
-        dimbase = dr.select(subsample, dimbase, U(DIM_LIGHTS) + 4 * light)
+        dimbase = U(DIM_LIGHTS) + 4 * light if k == 0 else dr.select(subsample, dimbase, U(DIM_LIGHTS) + 4 * light)
         # -- the point on the light (direct._generate) --------------------------------------------------------
         is_point = dr.gather(U, tab.is_point, light, valid) != 0
         on_area = valid & ~is_point
