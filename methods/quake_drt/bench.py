@@ -20,7 +20,8 @@ running anything:
     benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
     names the scene. Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct
     stage has work. ``by_pixels``: each stage's ms and ratio at that size and at the ``--rays-larger`` sizes (a
-    stage's fixed costs weigh less as the pixels grow).
+    stage's fixed costs weigh less as the pixels grow). ``on_devices``: the same at ``--resolution`` on each Dr.Jit
+    backend of ``--device`` beside ``--backend`` (what the device path, and a GPU where there is one, changes).
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
@@ -410,7 +411,8 @@ def parser():
     ap.add_argument("--rays-larger", default="640x360", help="further sizes for part rays, comma-separated ('' for "
                     "none): its ratios by pixels")
     ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the variance and a-trous stages on "
-                    "beside the host filters (auto: every one that works here; '' for none)")
+                    "beside the host filters, and part rays on beside --backend (auto: every one that works here; "
+                    "'' for none)")
     ap.add_argument("--time", type=float, default=1.0, help="scene time of the benchmarked view, seconds")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", default="results", help="results root; the document goes to <out>/bench/")
@@ -426,6 +428,27 @@ def ratios_row(rays: dict) -> dict:
         if stage in rays:
             row[f"{stage}_ms"], row[f"{stage}_ratio"] = rays[stage]["ms"], rays[stage]["ratio"]
     return row
+
+
+def rays_on_devices(scene, resolution, t_s: float, repeats: int, devices) -> list:
+    """Part ``rays`` again on each Dr.Jit backend of ``devices`` beside the bench's own (a row each: the backend,
+    its stages' ms and ratios to its device-resident raw and to its numpy-fed raw), so that the report shows what the
+    device path changes, a GPU included. A backend that fails gives a row with its error."""
+    from suite.harness import runner
+    from suite.harness.cli import device_columns
+
+    rows = []
+    for backend in devices:
+        def columns(backend=backend):
+            r = bench_rays(scene, runner.make_tracer(backend, scene), resolution, t_s, repeats, backend)
+            row = ratios_row(r)
+            for stage in ("primary", "secondary", "direct"):
+                if stage in r and "ratio_numpy" in r[stage]:
+                    row[f"{stage}_ratio_numpy"] = r[stage]["ratio_numpy"]
+            return row
+
+        rows.append({"backend": backend, **device_columns("quake_drt", backend, columns)})
+    return rows
 
 
 def _resolutions(text: str):
@@ -464,6 +487,8 @@ def run(args) -> dict:
         larger = [bench_rays(scene, tracer, r, args.time, args.repeats, args.backend)
                   for r in _resolutions(args.rays_larger)]
         out["rays"]["by_pixels"] = [ratios_row(r) for r in [out["rays"], *larger]]
+        out["rays"]["on_devices"] = rays_on_devices(scene, res, args.time, args.repeats,
+                                                    [b for b in devices if b != args.backend])
     if "asvgf" in parts:
         out["asvgf"] = {"backend": args.backend, "devices": devices,
                         **bench_asvgf(scene, tracer, many, args.time, args.repeats, devices)}
@@ -492,6 +517,15 @@ def format_results(out: dict) -> str:
             lines.append(f"  at {row['resolution'][0]}x{row['resolution'][1]}: "
                          + "   ".join(f"{st} {row[st + '_ratio']:.3f}" for st in ("primary", "secondary", "direct")
                                       if st + "_ratio" in row))
+        for row in r.get("on_devices", []):
+            short = row["backend"].replace("mitsuba-", "")
+            if f"{short}_error" in row:
+                lines.append(f"  on {row['backend']}: failed ({row[short + '_error']})")
+                continue
+            lines.append(f"  on {row['backend']}: " + "   ".join(
+                f"{st} {row[st + '_ms']:.1f} ms, ratio {row[st + '_ratio']:.3f}"
+                + (f" (numpy-fed {row[st + '_ratio_numpy']:.3f})" if st + "_ratio_numpy" in row else "")
+                for st in ("primary", "secondary", "direct") if st + "_ratio" in row))
     if "asvgf" in out:
         r = out["asvgf"]
         lines.append(f"A-SVGF + TAA ms: scene {r['scene']}, median of {r['repeats']}")

@@ -514,6 +514,13 @@ def _bench_part(bench, files: SectionFiles) -> str:
             bp = bp[["resolution"] + [f"{s}_{k}" for s in stages for k in ("ratio", "ms")]]
             out.append("<p>The same stages by pixels (stage / raw and ms)." + files.csv(bp, "bench_rays_by_pixels.csv")
                        + "</p>" + table_html(bp))
+        if r.get("on_devices"):
+            dv = pd.DataFrame(r["on_devices"])
+            out.append("<p>The same stages on each Dr.Jit backend that works here, at "
+                       f"{r['resolution'][0]}x{r['resolution'][1]} (ms; stage / raw, where raw is the backend on the "
+                       "rays in device memory; <code>_ratio_numpy</code> against its numpy-fed raw entry points). "
+                       "There the direct stage is one device kernel, the primary and secondary stages hand their "
+                       "rays over from numpy." + files.csv(dv, "bench_rays_on_devices.csv") + "</p>" + table_html(dv))
     a = bench.get("asvgf")
     if a:
         t = pd.DataFrame(a["rows"])

@@ -7,7 +7,7 @@ import math
 import pytest
 
 from methods.quake_drt import bench
-from suite.core.trace import backend_params
+from suite.core.trace import backend_params, device_backends
 
 
 def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys):
@@ -31,6 +31,12 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert small["primary_ratio"] == r["primary"]["ratio"] and small["secondary_ratio"] == sec["ratio"]
     assert all(math.isfinite(row[f"{st}_ratio"]) and row[f"{st}_ms"] > 0 for row in (small, larger)
                for st in ("primary", "secondary", "direct"))
+    # part rays again on each Dr.Jit backend that works here (mitsuba-llvm on every machine the suite installs on)
+    assert [row["backend"] for row in r["on_devices"]] == device_backends()
+    for row in r["on_devices"]:
+        assert row["resolution"] == [48, 27]
+        assert all(math.isfinite(row[f"{st}_{k}"]) and row[f"{st}_ms"] > 0 for st in ("primary", "secondary", "direct")
+                   for k in ("ratio", "ratio_numpy"))
     rows = {row["case"]: row for row in doc["lights"]["rows"]}
     assert rows["culled, all of the row"]["shadow_rays"] < rows["all lights, no culling"]["shadow_rays"]
     assert rows["culled, k = 1"]["shaded_per_point"] == 1.0

@@ -74,7 +74,10 @@ def stored(tmp_path):
     bench["rays"] = {"scene": SCENE, "backend": "embree", "resolution": [320, 180], "repeats": 3, "settings": "s",
                      "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"), "direct": stage(0.99),
                      "by_pixels": [{"resolution": [320, 180], "primary_ms": 2.0, "primary_ratio": 0.91},
-                                   {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}]}
+                                   {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}],
+                     "on_devices": [{"backend": "mitsuba-llvm", "resolution": [320, 180], "direct_ms": 212.0,
+                                     "direct_ratio": 0.5, "direct_ratio_numpy": 0.56},
+                                    {"backend": "mitsuba-cuda", "cuda_error": "RuntimeError: no GPU"}]}
     (tmp_path / "bench").mkdir()
     (tmp_path / "bench" / "quake_drt.json").write_text(json.dumps(bench))
     return frames, [d for d, _ in runs], tmp_path
@@ -124,6 +127,10 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
     by_pixels = (out / "quake_drt" / "bench_rays_by_pixels.csv").read_text()
     assert by_pixels.splitlines()[0] == "resolution,primary_ratio,primary_ms" and "640x360" in by_pixels
     assert (out / "quake_drt" / "bench_rays.csv").is_file()
+    # the stages on each Dr.Jit backend beside the bench's own, a failed one with its error
+    on_devices = (out / "quake_drt" / "bench_rays_on_devices.csv").read_text()
+    assert "mitsuba-llvm" in on_devices and "212.0" in on_devices and "RuntimeError: no GPU" in on_devices
+    assert "on each Dr.Jit backend" in html
 
 
 def test04_no_runs_no_bench_still_builds_and_every_claim_keeps_its_row(tmp_path):
