@@ -20,6 +20,10 @@ kernel and the Dr.Jit kernel (methods/layered_pvs/device.py, copies included) on
 (``--device``), medians of the row's repeats. ``pack_host_ms`` and ``pack_<device>_ms`` likewise for the pack stage
 (relocation, packing, colour filling: ``packing.pack_stage``), the numba passes against the Dr.Jit kernels.
 
+``server_on_devices``: the server rows again, at the middle ``--resolutions`` size and 4 layers (``--device-layers``),
+on each Dr.Jit backend of ``--device`` beside ``--backend``: what the device path (and a GPU, where there is one)
+changes, each backend against its own raw.
+
 The default sizes (:data:`DEFAULT_RESOLUTIONS`) run from 160x90 to 960x540, half the thesis's 1920x1080 in each
 direction: the ratios grow with the pixels, as each query's and each pass's fixed costs spread over more rays.
 """
@@ -231,6 +235,22 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
     return rows
 
 
+def server_on_devices(scene, params, resolution, layers: int, t_s, repeats: int, devices) -> list:
+    """:func:`server_rows` at one size on each Dr.Jit backend of ``devices``, a row each with its ``backend``; a
+    backend that fails gives a row with its error."""
+    from suite.harness import runner
+    from suite.harness.cli import device_columns
+
+    rows = []
+    for backend in devices:
+        def columns(backend=backend):
+            tracer = runner.make_tracer(backend, scene)
+            return server_rows(scene, tracer, params, [resolution], [layers], t_s, repeats)[0]
+
+        rows.append({"backend": backend, **device_columns("layered_pvs", backend, columns)})
+    return rows
+
+
 def codec_rows(size: int = 512, seed: int = 0):
     from methods.layered_pvs import codecs
     from methods.layered_pvs.method import jpeg_decode, jpeg_encode
@@ -299,8 +319,10 @@ def run(argv=None) -> dict:
     ap.add_argument("--codec-size", type=int, default=512, help="side of the codec benchmark's mask (pixels)")
     ap.add_argument("--repeats", type=int, default=3, help="timed updates per row (median; at least "
                     f"{SMALL_ROW_REPEATS} for rows of up to {SMALL_ROW_PIXELS} pixels), after one recording")
-    ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the layered SVGF on beside the numba "
-                    "kernel (auto: every one that works here; '' for none)")
+    ap.add_argument("--device", default="auto", help="Dr.Jit backends to time the layered SVGF and pack stage on "
+                    "beside the numba kernels, and the server stages on beside --backend (auto: every one that works "
+                    "here; '' for none)")
+    ap.add_argument("--device-layers", type=int, default=4, help="layers of the server rows on the --device backends")
     ap.add_argument("--out", default="results")
     args = ap.parse_args(argv)
     if args.repeats < 1:
@@ -324,6 +346,8 @@ def run(argv=None) -> dict:
     t_s = 0.5 * scene.camera.duration_s
     out = {"scene": args.scene, "backend": args.backend, "params": DEFAULT_PARAMS, "devices": devices,
            "server": server_rows(scene, tracer, DEFAULT_PARAMS, res, layer_counts, t_s, args.repeats, devices),
+           "server_on_devices": server_on_devices(scene, DEFAULT_PARAMS, res[len(res) // 2], args.device_layers,
+                                                  t_s, args.repeats, [b for b in devices if b != args.backend]),
            "codecs": codec_rows(args.codec_size)}
     # Images at the largest resolution: the client 0.15 s after the update, against the update rendered there.
     big = res[-1]

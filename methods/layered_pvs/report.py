@@ -260,7 +260,13 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
         fig.suptitle("Dabrovic Sponza, " + ", ".join(sorted(set(sp["backend"].astype(str)))))
         html.append("<h4>Sweeps</h4>" + files.plot(fig, "sweeps.png"))
         plt.close(fig)
-    bench = load_bench(METHOD, run_dirs, results_root)
+    html += bench_html(load_bench(METHOD, run_dirs, results_root), files, run_dirs, results_root)
+    return "\n".join(html)
+
+
+def bench_html(bench, files, run_dirs, results_root) -> list:
+    """The bench part of the section: the stored ``splitbench bench layered_pvs`` document's tables and images."""
+    html = []
     if bench:
         html.append(f"<h4>Bench ({esc(bench.get('scene'))}, {esc(bench.get('backend'))})</h4>")
         goal = ratio_goal_text(bench.get("server", []))
@@ -274,13 +280,17 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
         for key in ("server", "codecs", "client"):
             if key in bench:
                 html.append(f"<p>{esc(key)}</p>" + table_html(pd.DataFrame(bench[key])))
+            if key == "server" and bench.get("server_on_devices"):
+                html.append("<p>server stages on each Dr.Jit backend that works here (the PVS views, the depth "
+                            "peeling and the path tracer as device kernels; each ratio against that backend's raw on "
+                            "rays in device memory)</p>" + table_html(pd.DataFrame(bench["server_on_devices"])))
         for name in bench.get("images", []):
             src = Path(results_root or Path(list(run_dirs)[0]).parent) / "bench" / METHOD / name
             link = files.copy(src, name)
             if link:
                 html.append(f"<figure><img src='{esc(link)}'><figcaption>{esc(name)} ({esc(bench.get('scene'))}, "
                             f"{esc(bench.get('backend'))})</figcaption></figure>")
-    return "\n".join(html)
+    return html
 
 
 BENCH_STAGES = ("pvs", "layers", "path_trace")

@@ -4,7 +4,7 @@ import json
 import pytest
 
 from methods.layered_pvs import bench
-from suite.core.trace import backend_params
+from suite.core.trace import backend_params, device_backends
 
 
 def test01_bench_stores_stage_ratios_codec_rates_client_cost_and_images(tmp_path):
@@ -15,6 +15,17 @@ def test01_bench_stores_stage_ratios_codec_rates_client_cost_and_images(tmp_path
     assert {r["codec"] for r in out["codecs"]} >= {"quadtree_mask", "rle_huffman_mask", "jpeg_q25_444", "pvs_patch"}
     doc = json.loads((tmp_path / "bench" / "layered_pvs.json").read_text())
     assert doc["images"] and all((tmp_path / "bench" / "layered_pvs" / n).is_file() for n in doc["images"])
+    # the server rows again on each Dr.Jit backend that works here, each against its own device-resident raw
+    assert [r["backend"] for r in doc["server_on_devices"]] == device_backends()
+    for r in doc["server_on_devices"]:
+        assert r["resolution"] == "32x18" and r["layers"] == 4 and r["raw"] == "backend on device-resident rays"
+        assert all(r[f"{st}_rays"] > 0 and r[f"{st}_ratio"] > 0 for st in ("pvs", "layers", "path_trace"))
+    # and the report shows them
+    from methods.layered_pvs import report
+    from suite.harness.reporting import SectionFiles
+
+    html = "".join(report.bench_html(doc, SectionFiles(tmp_path / "report", "layered_pvs"), [], tmp_path))
+    assert "svgf_host_ms" in html and ("on each Dr.Jit backend" in html) == bool(device_backends())
 
 
 def test02_the_recorded_rays_are_the_ones_the_stage_traced():
