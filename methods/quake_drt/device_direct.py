@@ -65,7 +65,7 @@ class _Tables:
     def __init__(self, dev, lights, table, row_cdf, mode: str):
         from methods.quake_drt.lights import POINT
 
-        self.row_lights = dev.to_device(np.asarray(table.row_lights, np.uint32), dev.UInt32)
+        self.row_lights = dev.to_device(_nonempty(table.row_lights, np.uint32), dev.UInt32)  # every row may be empty
         self.row_cdf = dev.to_device(_nonempty(row_cdf, np.float64), dev.Float64) if mode != "uniform" else None
         self.is_point = dev.to_device(np.asarray(lights.kind == POINT, np.uint32), dev.UInt32)
         self.pos = dev.to_device(np.asarray(lights.position, np.float64), dev.Vector3d)

@@ -197,7 +197,20 @@ def test05_any_light_table_rows(backend, direct_setup, mode, k, device_calls, at
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test06_shadow_rays_walk_past_overlays_as_on_the_host(backend, renderer, device_calls, at_parity):
+def test06_a_table_whose_every_row_is_empty_lights_nothing(backend, direct_setup, device_calls):
+    """Lights exist but no cluster sees one (oa_ctf2 from a spot outside its clusters): black, and no ray."""
+    scene, tracer, pts, lights, _, _ = direct_setup(backend, glossy_every=0)
+    table = types.SimpleNamespace(row_offsets=np.zeros(3, np.int64), row_lights=np.zeros(0, np.int32),
+                                  row_centre=None)
+    rows = np.arange(len(pts)) % 2
+    for k, mode in ((0, "uniform"), (1, "uniform"), (2, "power")):
+        il, st = direct.shade(pts, lights, table, rows, k, mode, True, tracer, scene, 0.01)
+        assert (il == 0).all() and st.rays == st.visible == st.candidates == st.selected == 0
+    assert device_calls
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test07_shadow_rays_walk_past_overlays_as_on_the_host(backend, renderer, device_calls, at_parity):
     """The overlays' shadow-ray walk (closest hits past faces that cast no shadow) makes the host walk's queries."""
     from methods.quake_drt.primary import overlay_faces
 
