@@ -238,17 +238,10 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
 def server_on_devices(scene, params, resolution, layers: int, t_s, repeats: int, devices) -> list:
     """:func:`server_rows` at one size on each Dr.Jit backend of ``devices``, a row each with its ``backend``; a
     backend that fails gives a row with its error."""
-    from suite.harness import runner
-    from suite.harness.cli import device_columns
+    from suite.harness.cli import device_rows
 
-    rows = []
-    for backend in devices:
-        def columns(backend=backend):
-            tracer = runner.make_tracer(backend, scene)
-            return server_rows(scene, tracer, params, [resolution], [layers], t_s, repeats)[0]
-
-        rows.append({"backend": backend, **device_columns("layered_pvs", backend, columns)})
-    return rows
+    return device_rows("layered_pvs", devices, scene,
+                       lambda _, tracer: server_rows(scene, tracer, params, [resolution], [layers], t_s, repeats)[0])
 
 
 def codec_rows(size: int = 512, seed: int = 0):

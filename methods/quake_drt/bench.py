@@ -434,21 +434,17 @@ def rays_on_devices(scene, resolution, t_s: float, repeats: int, devices) -> lis
     """Part ``rays`` again on each Dr.Jit backend of ``devices`` beside the bench's own (a row each: the backend,
     its stages' ms and ratios to its device-resident raw and to its numpy-fed raw), so that the report shows what the
     device path changes, a GPU included. A backend that fails gives a row with its error."""
-    from suite.harness import runner
-    from suite.harness.cli import device_columns
+    from suite.harness.cli import device_rows
 
-    rows = []
-    for backend in devices:
-        def columns(backend=backend):
-            r = bench_rays(scene, runner.make_tracer(backend, scene), resolution, t_s, repeats, backend)
-            row = ratios_row(r)
-            for stage in ("primary", "secondary", "direct"):
-                if stage in r and "ratio_numpy" in r[stage]:
-                    row[f"{stage}_ratio_numpy"] = r[stage]["ratio_numpy"]
-            return row
+    def row(backend, tracer):
+        r = bench_rays(scene, tracer, resolution, t_s, repeats, backend)
+        out = ratios_row(r)
+        for stage in ("primary", "secondary", "direct"):
+            if stage in r and "ratio_numpy" in r[stage]:
+                out[f"{stage}_ratio_numpy"] = r[stage]["ratio_numpy"]
+        return out
 
-        rows.append({"backend": backend, **device_columns("quake_drt", backend, columns)})
-    return rows
+    return device_rows("quake_drt", devices, scene, row)
 
 
 def _resolutions(text: str):

@@ -23,9 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from methods.quake_drt.primary import MAX_OVERLAY_LAYERS
 from methods.quake_drt.rng import DIM_LIGHTS
 from suite.core.shading import SHADOW_TMAX_SCALE
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
+from suite.core.trace.base import MAX_RAY_LENGTH
 
 INV_PI = 0.3183098861837907  # direct._generate's literal 1 / pi
 
@@ -236,7 +238,7 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
     _, acc, rays, visible, extra, _ = dr.while_loop(state, lambda q, *_: q < take, body)
     dev.eval(acc, rays, visible, extra)
     out = dev.to_host(acc, np.float64)
-    bound = max(max_take, 1) * (MAX_ALPHA_LAYERS + 2) * (_MAX_WALK + 1)
+    bound = max(max_take, 1) * (MAX_ALPHA_LAYERS + 2) * (MAX_OVERLAY_LAYERS + 1)
     return out, dev.sum_u32(rays, max_take), dev.sum_u32(visible, max_take), dev.sum_u32(extra, bound)
 
 
@@ -246,7 +248,7 @@ def _walk_past(dev, o_local, d, length, skip, blocked):
     in its float64 steps (world origin, ``start`` just past each skipped hit, at most ``MAX_OVERLAY_LAYERS`` of them;
     a ray with more counts as unblocked)."""
     dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
-    s = dev._shift
+    s = [float(x) for x in dev.tracer.shift]
     o = dev.Point3d(F64(o_local.x) + s[0], F64(o_local.y) + s[1], F64(o_local.z) + s[2])
     d64 = dev.Vector3d(d)
     tmax = F64(length)
@@ -254,7 +256,7 @@ def _walk_past(dev, o_local, d, length, skip, blocked):
 
     def body(start, todo, prim_out, layers, traced):
         org = dev.Point3d(o.x + d64.x * start, o.y + d64.y * start, o.z + d64.z * start)
-        rem = dr.clip(F(dr.maximum(tmax - start, 0.0)), 0.0, float(_MAX_RAY_LENGTH))
+        rem = dr.clip(F(dr.maximum(tmax - start, 0.0)), 0.0, float(MAX_RAY_LENGTH))
         t, prim, _, _, tr = dev.closest(dev.local_f32(org), d, rem, todo)
         traced = traced + (dr.select(todo, U(1), U(0)) if tr is None else dr.select(todo, tr, U(0)))
         t_all = start + F64(t)
@@ -266,16 +268,6 @@ def _walk_past(dev, o_local, d, length, skip, blocked):
         return start, sk, prim_out, layers + 1, traced
 
     state = (dr.zeros(F64, n), dev.Bool(blocked), dr.full(dev.Int32, -1, n), dr.zeros(U, n), dr.zeros(U, n))
-    _, todo, prim, _, traced = dr.while_loop(state, lambda start, todo, p, layers, tr: todo & (layers < _MAX_WALK + 1),
-                                             body)
+    _, todo, prim, _, traced = dr.while_loop(
+        state, lambda start, todo, p, layers, tr: todo & (layers < MAX_OVERLAY_LAYERS + 1), body)
     return ~todo & (prim >= 0) & blocked, traced
-
-
-def _constants():
-    from methods.quake_drt.primary import MAX_OVERLAY_LAYERS
-    from suite.core.trace.base import MAX_RAY_LENGTH
-
-    return MAX_OVERLAY_LAYERS, MAX_RAY_LENGTH
-
-
-_MAX_WALK, _MAX_RAY_LENGTH = _constants()

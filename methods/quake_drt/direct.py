@@ -532,9 +532,9 @@ def _shade_device(dev, points, lights, table, rows, k, mode, soft, tracer, scene
     stats = DirectStats(candidates=int(counts.sum()), selected=int((counts if k == 0 else np.minimum(counts, k)).sum()))
     lam = np.asarray(points.lambert, bool)
     if lam.any():
-        sel = slice(None) if lam.all() else np.nonzero(lam)[0]  # (a copy of every field costs more than the kernel)
-        args = (dev, points if lam.all() else points.subset(sel), lights, table, rows[sel], int(k), mode, bool(soft),
-                float(min_distance), skip_faces, row_cdf)
+        # all Lambertian (the usual case): the points as they are (a copy of every field costs more than the kernel)
+        sel, sub = (slice(None), points) if lam.all() else (np.nonzero(lam)[0], points.subset(lam))
+        args = (dev, sub, lights, table, rows[sel], int(k), mode, bool(soft), float(min_distance), skip_faces, row_cdf)
         if capture is not None:
             device_direct.shade(*args, record=capture)
         il, rays, visible, extra = device_direct.shade(*args)

@@ -527,14 +527,7 @@ def _patch_gbuffer(g, rows: np.ndarray, sub: Surface, scene) -> None:
     """The G-buffer guides of pixels whose centre ray hit an overlay: the opaque surface behind it."""
     from suite.core.scene.model import KIND_CODES
 
-    if g.device is not None:
-        # A Dr.Jit tracer's G-buffer is the read-only twin of its device G-buffer; patched, it no longer matches that
-        # one, so the guides become a host G-buffer of their own.
-        for name in ("valid", "prim", "position", "normal", "geo_normal", "albedo", "emission", "depth", "material",
-                     "kind"):
-            if getattr(g, name) is not None:
-                setattr(g, name, np.array(getattr(g, name)))
-        g.device = None
+    g.detach()  # a Dr.Jit tracer's G-buffer is the read-only twin of its device G-buffer
     flat = lambda a: a.reshape(-1, *a.shape[2:])  # noqa: E731
     flat(g.valid)[rows] = sub.valid
     flat(g.prim)[rows] = sub.prim

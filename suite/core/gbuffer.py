@@ -11,7 +11,7 @@ what lies behind them. Each pixel carries its material index and shading kind (`
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -39,6 +39,17 @@ class GBuffer:
     # The DeviceGBuffer this one was copied from (Mitsuba tracers; then the arrays are read-only, so the two cannot
     # drift apart): shading on the same tracer uses it instead of uploading the host arrays again.
     device: object | None = field(default=None, repr=False, compare=False)
+
+    def detach(self) -> "GBuffer":
+        """Makes the arrays writable, in place: a device twin's read-only arrays become host copies and the link to
+        the device G-buffer goes (once changed, the two would no longer agree). Returns this G-buffer."""
+        if self.device is not None:
+            for f in fields(self):
+                a = getattr(self, f.name)
+                if isinstance(a, np.ndarray) and not a.flags.writeable:
+                    setattr(self, f.name, a.copy())
+            self.device = None
+        return self
 
     def kind_mask(self, kind: str) -> np.ndarray:
         """(H, W) bool: pixels whose visible surface has shading kind ``kind`` ("diffuse", "mirror", "glass",

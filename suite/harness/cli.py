@@ -348,6 +348,15 @@ def device_columns(bench: str, backend: str, fn) -> dict:
         return {f"{short}_error": message}
 
 
+def device_rows(bench: str, backends, scene, fn) -> list:
+    """One row per Dr.Jit backend of ``backends``: ``{"backend": name, **fn(name, tracer)}`` with a fresh tracer of
+    that backend on ``scene``, or the backend's error (:func:`device_columns`): a method bench's stages timed again on
+    each device beside its own backend."""
+    from suite.core.trace import make
+
+    return [{"backend": b, **device_columns(bench, b, lambda b=b: fn(b, make(b, scene)))} for b in backends]
+
+
 def bench_scene(name: str, bench: str, preferred: str = "dabrovic_sponza", fallback: str = "living_room") -> str:
     """A method bench's ``--scene``: ``auto`` is ``preferred`` where its data is on this machine, else ``fallback``
     (with a note); any other name is kept."""
