@@ -8,7 +8,8 @@ running anything:
     Rays per second of the tracing stages against the backend's raw rate on the very same rays, medians of
     ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and secondary
     stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus
-    anti-aliased shading rays, attributes, overlays) against the raw closest-hit query on its two camera ray sets;
+    anti-aliased shading rays, attributes, overlays; on a Dr.Jit backend both are device kernels,
+    methods/quake_drt/device_primary.py) against the raw closest-hit query on its two camera ray sets;
     the direct stage (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion
     query on the rays it generated (captured from an untimed run; on a Dr.Jit backend the stage is the device kernel
     of methods/quake_drt/device_direct.py, and its rays are recorded per iteration of its loop over light samples,

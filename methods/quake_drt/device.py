@@ -261,7 +261,7 @@ def gradient_atrous(dev, grad, w: int, h: int, s):
 def antilag(dev, lam, w: int, h: int):
     """:meth:`methods.quake_drt.asvgf.ASVGF.antilag` on the device: per pixel the largest lambda of the 3x3 gradient
     cells around its cell (Float, full resolution)."""
-    dr, F, I32 = dev.dr, dev.Float, dev.Int32
+    dr, F = dev.dr, dev.Float
     cw, ch = -(-w // GRAD_DWN), -(-h // GRAD_DWN)
     y, x = _pixels(dev, w, h)
     cy, cx = y // GRAD_DWN, x // GRAD_DWN

@@ -7,7 +7,8 @@ Per frame, all on the client (placement ``local``; :mod:`.pipeline` has the stag
   row comes from the PVS cluster of the hit triangle or point, §4.3.1) and the shading sample of each pixel, with
   anti-aliasing jitter and depth of field when switched on; transparent overlays are blended along the ray in
   order (Algorithm 6.1, the three-surface limitation removed); alpha-tested surfaces are continued where their
-  alpha is below the threshold (the tracers alpha-test).
+  alpha is below the threshold (the tracers alpha-test). On a Dr.Jit backend the G-buffer and the jittered pinhole
+  shading samples are device kernels (:mod:`.device_primary`, the host pass's bits on ``llvm_ad_rgb``).
 * **secondary** (§6.5): mirrors, glass and water to depth ``max_depth`` (5); all branches (noise-free) or one
   random branch; optional glossy reflections.
 * **direct** (§6.6, Algorithm 6.2): for each shaded surface, the lights of its PVS row (Table 4.2; all lights
@@ -92,6 +93,9 @@ class QuakeDRT(Method):
         "host_device_bytes": "bytes the A-SVGF (stages 5-7) and TAA copied between host and device memory (on a "
                              "Dr.Jit backend, where they run as device kernels and keep their histories there; 0 on "
                              "the host path)",
+        "primary_device_bytes": "bytes the primary stage copied between host and device memory (on a Dr.Jit "
+                                "backend, where the G-buffer and the jittered shading samples are device kernels: "
+                                "both come back to the host; 0 on the host path)",
         "direct_device_bytes": "bytes the direct stage copied between host and device memory (on a Dr.Jit backend, "
                                "where it runs as a device kernel: the shading points and light table up, their "
                                "illumination back; 0 on the host path)",

@@ -247,7 +247,9 @@ class Pipeline:
             return culling.point_rows(table, vis, p.prim, p.p, p.ng, s.pixel_cluster, s.cluster_probe_m,
                                       s.cull_lights)
 
+        dev = getattr(tracer, "device", None)
         with stage("primary") as st:
+            copied0 = dev.copied_bytes if dev is not None else 0
             g, surf = primary.primary_stage(scene, tracer, t_s, prev_t_s, (w, h), seeds, s.antialiasing,
                                             s.dof_aperture_m if s.dof else 0.0, s.dof_focal_m, overlay,
                                             s.overlay_alpha)
@@ -257,6 +259,9 @@ class Pipeline:
             prim_pts = self._primary_points(scene, surf, seeds)
             prim_rows = rows_of(prim_pts)
             st.pixels = n
+        # on a Dr.Jit backend the G-buffer and the jittered shading samples are device kernels whose results come
+        # back to the host for the stages after this one (methods/quake_drt/device_primary.py)
+        info["primary_device_bytes"] = (dev.copied_bytes - copied0) if dev is not None else 0
         info["overlay_pixels"] = surf.n_overlay_pixels
         info["fwd"] = fwd
         spec = np.array([m.is_specular for m in scene.materials], bool)
@@ -272,7 +277,6 @@ class Pipeline:
         with stage("direct") as st:
             pts = direct.ShadingPoints.concat([prim_pts, sec.points if sec is not None else None])
             rows = np.concatenate([prim_rows, sec_rows]) if sec is not None else prim_rows
-            dev = getattr(tracer, "device", None)
             copied0 = dev.copied_bytes if dev is not None else 0
             if s.illumination:
                 # on a Dr.Jit backend a device kernel (methods/quake_drt/device_direct.py): the points go up, their
@@ -295,7 +299,6 @@ class Pipeline:
                         emission.reshape(h, w, 3), guides, info)
 
     def _guides(self, g, surf, sec, scene, t_s) -> asvgf_mod.Guides:
-        h, w = self.h, self.w
         fdepth = g.depth.astype(np.float64).copy()
         fnormal = g.normal.astype(np.float64).copy()
         if sec is not None and len(sec.guide_pixel):
@@ -333,7 +336,7 @@ class Pipeline:
             extra.append(self.raw_frame(scene, tracer, t_s, prev_t_s, more.reshape(-1), None, stage,
                                         suffix=f"_s{i + 1}"))
             for key in ("shadow_rays", "shadow_rays_visible", "candidates", "selected", "shading_points",
-                        "secondary_rays", "direct_device_bytes"):
+                        "secondary_rays", "primary_device_bytes", "direct_device_bytes"):
                 record[key] += extra[-1].info[key]
         denoised = None
         if s.denoiser:

@@ -26,11 +26,13 @@ The suite's Quake III loader drops additive faces from the geometry (docs/scenes
 geometry"), so on the listed maps only ALPHA-blended faces (e.g. oa_ctf2's jump-pad glows, which the scene model
 calls glass) are overlays; ADD blending is exercised by the tests on synthetic scenes.
 
-**Cost.** The shading rays' directions and their surfaces (geometry, texture lookup, facing) are compiled passes
-over the pixels (:func:`camera_rays`, :func:`surface_from_hits`, each with the bits of its numpy reference), and
-the surfaces are computed on a worker thread while the G-buffer's rays are traced, so that the stage costs little
-more than its two closest-hit queries and the G-buffer's own pass (the ``rays`` part of ``splitbench bench
-quake_drt``).
+**Cost.** On a host tracer the shading rays' directions and their surfaces (geometry, texture lookup, facing) are
+compiled passes over the pixels (:func:`camera_rays`, :func:`surface_from_hits`, each with the bits of its numpy
+reference), and the surfaces are computed on a worker thread while the G-buffer's rays are traced, so that the
+stage costs little more than its two closest-hit queries and the G-buffer's own pass (the ``rays`` part of
+``splitbench bench quake_drt``). On a Dr.Jit tracer the G-buffer is the device's (suite.core.device.gbuffer) and
+jittered pinhole samples are one device kernel (:mod:`methods.quake_drt.device_primary`), both with the host
+passes' bits on ``llvm_ad_rgb``; depth of field and overlays keep the host passes.
 """
 from __future__ import annotations
 
@@ -428,7 +430,10 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
 
     With jitter or depth of field the shading rays are traced first, and a worker thread computes their
     surfaces (a compiled pass that releases the GIL) while the G-buffer's pixel-centre rays are traced: the
-    same queries and results as one after the other."""
+    same queries and results as one after the other. On a Dr.Jit tracer jittered pinhole samples without overlays
+    are a device kernel instead (:mod:`methods.quake_drt.device_primary`; the same queries and values)."""
+    from methods.quake_drt import device_primary  # imports this module's limits
+
     width, height = resolution
     skip = None if overlay_kind is None else overlay_kind > 0
     textures = _texture_table(scene)
@@ -445,7 +450,10 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
         return gbuffer()[0], s
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending, layers = None, []
-        if jitter or aperture_m > 0.0:
+        if device_primary.available(tracer, jitter, aperture_m, skip, textures):
+            # On a Dr.Jit tracer: the rays, their hits and surfaces in one device kernel (the host pass's bits).
+            s = device_primary.shading_samples(scene, tracer, t_s, width, height, seeds)
+        elif jitter or aperture_m > 0.0:
             tracer.update(t_s)  # the scene at t_s, as the G-buffer's query below sees it (it updates again: a no-op)
             o, d = camera_rays(scene, t_s, width, height, seeds, jitter, aperture_m, focal_m)
             if skip is None:
@@ -467,7 +475,7 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
             # surface_from_hits fills the raw normals of every hit already.
             s = pending.result()
             _blend_overlays(scene, t_s, s, layers, overlay_kind, overlay_alpha)
-        else:
+        elif not (jitter or aperture_m > 0.0):
             s = _surface_from_gbuffer(g, o64, d64, hits)
             if centre is not None:
                 _set_rows(s, over, centre)

@@ -264,21 +264,23 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     return g
 
 
-def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in) -> SimpleNamespace:
+def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in, bary64: bool = False) -> SimpleNamespace:
     """Surface attributes at closest hits, lazily: :func:`suite.core.gbuffer.surface_attributes` and the facing of
     :func:`suite.core.gbuffer.render_gbuffer`, in float64 where the host is, operation for operation.
 
     ``prim``, ``u``, ``v``: the hits (``valid`` where ``prim >= 0``); ``ray_o`` (Point3d, world) and ``d64`` (Vector3d):
     the rays in float64, whose intersection with the hit triangle's plane is the position (the tracers' float32
     distance carries an error that grows with the distance from the origin); ``d_in`` (Vector3d): the direction the
-    normals are turned against. Returns ``position`` (Point3d), ``ng`` and ``ns`` (Vector3d, geometric and shading
-    normal facing the ray), ``albedo`` (Vector3f: the material's constant or its texture), ``mat`` (Int32) and
-    ``front`` (Bool: the ray met the geometric normal's front)."""
+    normals are turned against; ``bary64``: see below. Returns ``position`` (Point3d), ``ng`` and ``ns`` (Vector3d, geometric and shading
+    normal facing the ray; ``ng_raw`` and ``ns_raw`` as wound and interpolated), ``albedo`` (Vector3f: the material's
+    constant or its texture), ``mat`` (Int32) and ``front`` (Bool: the ray met the geometric normal's front)."""
     dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
     tables = dev.tables
     vid = tables.triangle(prim, valid)
     tri = [dev.Vector3d(dr.gather(dev.Vector3f, tables.vpos, vid[k], valid)) for k in range(3)]
-    w0 = F64(1.0 - u - v)  # float32, then float64, as surface_attributes computes it
+    # The first barycentric as surface_attributes computes it: in float32, then widened; ``bary64``: (1 - u) - v in
+    # float64, as methods.quake_drt.primary's surface pass does.
+    w0 = (1.0 - F64(u)) - F64(v) if bary64 else F64(1.0 - u - v)
     w = (w0, F64(u), F64(v))
     e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
     ng = dev.Vector3d(e1.y * e2.z - e1.z * e2.y, e1.z * e2.x - e1.x * e2.z, e1.x * e2.y - e1.y * e2.x)
@@ -307,7 +309,8 @@ def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in) -> SimpleNamespace:
         uvx, uvy = tables.uv_f64(vid, w, textured)
         tex = tables.albedo_tex.lookup(mat, uvx, uvy, textured)
         albedo = dr.select(textured, dev.Vector3f(F(tex[0]), F(tex[1]), F(tex[2])), albedo)
-    return SimpleNamespace(position=position, ng=ng_view, ns=ns_view, albedo=albedo, mat=mat, front=front)
+    return SimpleNamespace(position=position, ng=ng_view, ns=ns_view, ng_raw=ng, ns_raw=ns, albedo=albedo, mat=mat,
+                           front=front)
 
 
 def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hits: bool, with_motion: bool,

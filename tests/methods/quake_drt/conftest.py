@@ -109,3 +109,15 @@ def _direct_setup(backend="embree", extra_lights=40, glossy_every=7):
 @pytest.fixture
 def direct_setup():
     return _direct_setup
+
+
+@pytest.fixture
+def calls_of(monkeypatch):
+    """``calls_of(module, name)``: a list that grows by one at each call of ``module.name`` (so that a test of a device
+    kernel knows the kernel ran, and does not compare the host path with itself)."""
+    def watch(module, name):
+        calls, original = [], getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, **k: calls.append(1) or original(*a, **k))
+        return calls
+
+    return watch

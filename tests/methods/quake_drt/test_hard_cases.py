@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 
 from methods.quake_drt import testscenes
-from suite.core.scene.model import Material, PointLight
+from suite.core.scene.model import PointLight
 
 
 def _with_light(scene, name, position, intensity=5.0):

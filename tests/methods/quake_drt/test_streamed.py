@@ -3,7 +3,6 @@ low-latency video (suite.core.video) through the network and decoded on the clie
 client shows the local image up to codec error; UDP loss damages frames until the next IDR frame."""
 import glob
 
-import numpy as np
 import pandas as pd
 import pytest
 

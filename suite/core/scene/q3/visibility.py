@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from suite.errors import UserError
 from suite.core.scene.pvs import ClusterPVS
 
 LEAF_EPSILON_UNITS = 1.0
