@@ -448,12 +448,16 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
         gbuffer_steps, gbuffer = _gbuffer.primary_steps(scene, tracer, t_s, width, height, prev_t_s)
         pipeline.pipelined(shading_steps + gbuffer_steps)
         return gbuffer()[0], s
+    if device_primary.available(tracer, jitter, aperture_m, skip, textures):
+        # On a Dr.Jit tracer: the samples' rays, hits and surfaces in one device kernel, then the device G-buffer
+        # (both the host passes' bits); nothing here reads the pixel-centre rays or hits on the host.
+        from suite.core.device.gbuffer import render_gbuffer
+
+        s = device_primary.shading_samples(scene, tracer, t_s, width, height, seeds)
+        return render_gbuffer(scene, tracer, t_s, (width, height), prev_t_s).to_host_twin(), s
     with ThreadPoolExecutor(max_workers=1) as pool:
         pending, layers = None, []
-        if device_primary.available(tracer, jitter, aperture_m, skip, textures):
-            # On a Dr.Jit tracer: the rays, their hits and surfaces in one device kernel (the host pass's bits).
-            s = device_primary.shading_samples(scene, tracer, t_s, width, height, seeds)
-        elif jitter or aperture_m > 0.0:
+        if jitter or aperture_m > 0.0:
             tracer.update(t_s)  # the scene at t_s, as the G-buffer's query below sees it (it updates again: a no-op)
             o, d = camera_rays(scene, t_s, width, height, seeds, jitter, aperture_m, focal_m)
             if skip is None:
@@ -475,7 +479,7 @@ def primary_stage(scene, tracer, t_s: float, prev_t_s, resolution, seeds: np.nda
             # surface_from_hits fills the raw normals of every hit already.
             s = pending.result()
             _blend_overlays(scene, t_s, s, layers, overlay_kind, overlay_alpha)
-        elif not (jitter or aperture_m > 0.0):
+        else:
             s = _surface_from_gbuffer(g, o64, d64, hits)
             if centre is not None:
                 _set_rows(s, over, centre)
