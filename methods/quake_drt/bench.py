@@ -15,7 +15,8 @@ running anything:
     of methods/quake_drt/device_direct.py, and its rays are recorded per iteration of its loop over light samples,
     in the order it traces them); the secondary stage (mirror, glass and water
     chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced (recorded
-    in an untimed run). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded
+    in an untimed run; where the chains run on the device, methods/quake_drt/device_secondary.py, they record their
+    rays there). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded
     once, outside the timed calls); the numpy-fed raw entry points are timed beside it (``raw_numpy_ms``,
     ``ratio_numpy``). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
     benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
@@ -225,14 +226,18 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
     _, surf = primary.primary_stage(scene, tracer, t_s, None, (f.w, f.h), seeds, s.antialiasing,
                                     s.dof_aperture_m if s.dof else 0.0, s.dof_focal_m, overlay, s.overlay_alpha)
 
-    def stage(tr=tracer):
+    def stage(tr=tracer, record=None):
         return secondary.secondary_stage(scene, tr, t_s, surf, seeds, s.max_depth, s.all_branches,
-                                         s.glossy_reflections, s.glossy_cone_deg, skip)
+                                         s.glossy_reflections, s.glossy_cone_deg, skip, record)
 
     # The device as the stage finds it on the plain tracer: the same code path (the secondary stage asks only for
-    # closest hits, directly or through walk_past).
-    recorder = RecordingTracer(tracer, device=True)
-    result = stage(recorder)
+    # closest hits, directly or through walk_past; where its chains run on the device they record their rays there).
+    recorder, records = RecordingTracer(tracer, device=True), []
+    result = stage(recorder, records)
+    dev = getattr(tracer, "device", None)
+    for _, ray in records:  # the device chains' rays, copied for the numpy-fed raw only
+        recorder.log.append(("i", dev.to_host(ray.o, np.float32), dev.to_host(ray.d, np.float32),
+                             dev.to_host(ray.maxt, np.float32)))
     raw_rays = recorder.rays
     entry = {"scene": scene.name, "repeats": repeats, "rays_per_depth": [int(n) for n in result.rays_per_depth],
              "specular_pixels": int(len(np.unique(result.points.pixel))) if len(result.points) else 0}
@@ -240,7 +245,8 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
         return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
                 "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
 
-    timed = _against_raw(stage, recorder.log, tracer, repeats, recorder.replay)
+    log = recorder.log[:len(recorder.log) - len(records)]  # rays already on the device are replayed from there
+    timed = _against_raw(stage, log, tracer, repeats, recorder.replay, records)
     # backend queries: the continuation rays and any alpha walk past transparent texels
     return {**entry, **_rates(timed, f.rays(stage), raw_rays)}
 

@@ -10,7 +10,8 @@ Per frame, all on the client (placement ``local``; :mod:`.pipeline` has the stag
   alpha is below the threshold (the tracers alpha-test). On a Dr.Jit backend the G-buffer and the jittered pinhole
   shading samples are device kernels (:mod:`.device_primary`, the host pass's bits on ``llvm_ad_rgb``).
 * **secondary** (§6.5): mirrors, glass and water to depth ``max_depth`` (5); all branches (noise-free) or one
-  random branch; optional glossy reflections.
+  random branch; optional glossy reflections. On ``cuda_ad_rgb`` the chains are a device wavefront
+  (:mod:`.device_secondary`, the host pass's bits on ``llvm_ad_rgb``).
 * **direct** (§6.6, Algorithm 6.2): for each shaded surface, the lights of its PVS row (Table 4.2; all lights
   with ``cull_lights`` off), ``num_random_dl`` of them chosen (0 = all; uniform with weight n/k, or proportional
   to power), one shadow ray each to a random point of an area light (soft shadows) or the point light. On a

@@ -25,8 +25,9 @@ guides (normal, depth = path length) of a specular pixel are those of its strong
 shading points and chains), in parts on two threads so that one part's passes overlap the other's query
 (:func:`secondary_stage`; each part puts its rays in the tracing frame itself, so only the query holds the
 tracer); :func:`secondary_stage_reference` is the same in whole-array numpy, and the tests hold
-the two to the same bits. ``splitbench bench quake_drt`` times the stage against the backend's raw query on its
-rays.
+the two to the same bits. On ``cuda_ad_rgb`` the chains are a device wavefront with the same bits on
+``llvm_ad_rgb`` (:mod:`methods.quake_drt.device_secondary`). ``splitbench bench quake_drt`` times the stage against the
+backend's raw query on its rays.
 """
 from __future__ import annotations
 
@@ -491,7 +492,7 @@ def bsdf_normal(scene, material, ns_view, ns_raw, wi) -> np.ndarray:
 
 def secondary_stage(scene, tracer, t_s: float, surface, seeds: np.ndarray, max_depth: int = DEFAULT_MAX_DEPTH,
                     all_branches: bool = True, glossy: bool = False, glossy_cone_deg: float = 5.0,
-                    skip_faces=None) -> SecondaryResult:
+                    skip_faces=None, record=None) -> SecondaryResult:
     """Follows the specular chains of the shading samples ``surface`` (module docstring).
 
     The chains are split into :data:`PARTS` parts (contiguous runs of pixels: a pixel's chains stay in one part),
@@ -502,12 +503,13 @@ def secondary_stage(scene, tracer, t_s: float, surface, seeds: np.ndarray, max_d
     query. The result has the bits of :func:`secondary_stage_reference`, which runs the same parts one after the
     other: each pixel's emission and shading points come in the same order whatever the scheduling. Glossy
     reflections (a cone sampled with trigonometric functions, whose numpy and compiled versions need not round
-    alike) take the reference."""
+    alike) take the reference. Where the chains run on the device (:mod:`methods.quake_drt.device_secondary`),
+    ``record`` (a list) gets their rays per depth."""
     if glossy:
         return secondary_stage_reference(scene, tracer, t_s, surface, seeds, max_depth, all_branches, glossy,
                                          glossy_cone_deg, skip_faces)
     branches = _CompiledBranches(scene, seeds, all_branches, getattr(tracer, "shift", None))
-    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, compiled=True)
+    return _stage(scene, tracer, surface, max_depth, skip_faces, branches, t_s, compiled=True, record=record)
 
 
 def secondary_stage_reference(scene, tracer, t_s: float, surface, seeds: np.ndarray,
@@ -540,7 +542,7 @@ def _specular(scene) -> np.ndarray:
     return np.array([m.is_specular for m in scene.materials], np.bool_)
 
 
-def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: float, compiled: bool):
+def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: float, compiled: bool, record=None):
     """The chains of every specular pixel of ``surface`` in :data:`PARTS` parts (:func:`_chains`), merged; with
     ``compiled`` the parts run on threads on a host tracer and the guides come from :func:`_strongest`."""
     rows = np.nonzero(surface.valid & branches.spec[np.maximum(surface.material, 0)])[0]
@@ -571,7 +573,13 @@ def _stage(scene, tracer, surface, max_depth: int, skip_faces, branches, t_s: fl
             pending = [pool.submit(run, part) for part in parts[1:]]
             done = [run(parts[0])] + [f.result() for f in pending]
     else:  # the reference, and Dr.Jit (driven from one thread): the parts one after the other
-        done = [_chains(tracer, part, *args) for part in parts]
+        from methods.quake_drt import device_secondary
+
+        if compiled and device_secondary.available(tracer, False, skip_faces):
+            # on a Dr.Jit tracer the compiled chains run on the device (methods/quake_drt/device_secondary.py)
+            done = device_secondary.chains_in_parts(tracer, parts, *args, record=record)
+        else:
+            done = [_chains(tracer, part, *args) for part in parts]
     found = [pt for points, _ in done for pt in points]
     depths = max((len(r) for _, r in done), default=0)
     rays_per_depth = [sum(r[k] for _, r in done if k < len(r)) for k in range(depths)]

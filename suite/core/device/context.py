@@ -262,6 +262,22 @@ class Device:
         self.counters["copies_to_host"] += 1
         return HostCopy(a, nbytes) if with_bytes else a
 
+    def to_host_all(self, values, dtypes=None) -> list:
+        """:meth:`to_host` of several arrays, evaluated together first (arrays of one size in one kernel, where one
+        :meth:`to_host` each would launch a kernel each for their gathers and interleaving)."""
+        dr = self.dr
+        dtypes = [None] * len(values) if dtypes is None else dtypes
+        flat = [dr.ravel(v, order="F") if dr.depth_v(v) > 1 else v for v in values]
+        dr.eval(*flat)
+        out = []
+        for v, f, dtype in zip(values, flat, dtypes):
+            a = np.asarray(f.numpy())
+            a = a.reshape(-1, len(v)) if dr.depth_v(v) > 1 else np.array(a)  # a vector's buffer is private
+            self.counters["bytes_to_host"] += int(a.nbytes)
+            self.counters["copies_to_host"] += 1
+            out.append(a.astype(dtype) if dtype is not None and a.dtype != np.dtype(dtype) else a)
+        return out
+
     def to_device(self, array: np.ndarray, dtype):
         """Uploads a numpy array as Dr.Jit ``dtype`` (for vector types, (N, k) rows) and counts the bytes."""
         a = np.asarray(array)
