@@ -2,7 +2,8 @@
 (methods/quake_drt/device_secondary.py): on llvm_ad_rgb, where the tests run it (frames take it on cuda_ad_rgb only),
 its shading points (every field, in order), the emission the chains collect, the denoiser guides, the rays per depth
 and the tracer's query counts are the host stage's bit for bit (at parity on cuda_ad_rgb): with all branches and with
-one random branch, in one part and in two, and when the chains end at depth 1. Glossy cones and overlays keep the
+one random branch, in one part and in two, with gold mirrors seen from either side, and when the chains end at
+depth 1. Glossy cones and overlays keep the
 host path."""
 import numpy as np
 import pytest
@@ -84,8 +85,43 @@ def test01_the_device_chains_are_the_host_stages(backend, case, size, all_branch
         assert got.rays_per_depth == want.rays_per_depth and c_dev == c_host
 
 
+def _mirror_back():
+    """A two-sided gold mirror seen from its back (its normal faces away from the camera), reflecting a lit wall
+    behind the camera; a one-sided twin beside it ends its chains there."""
+    from suite.core.scene.builder import SceneBuilder
+    from suite.core.scene.model import CameraKey
+
+    b = SceneBuilder()
+    gold = dict(conductor_eta=(0.143, 0.374, 1.442), conductor_k=(3.983, 2.385, 1.603))
+    two = b.add_material("two_sided", albedo=(0.0, 0.0, 0.0), kind="mirror", twosided=True, **gold)
+    one = b.add_material("one_sided", albedo=(0.0, 0.0, 0.0), kind="mirror", **gold)
+    wall = b.add_material("wall", albedo=(0.7, 0.6, 0.5))
+    b.add_quad(((-0.6, 0.0, 0.0), (0.0, 0.5, 0.0), (0.5, 0.0, 0.0)), two)  # front normal -z: away from the camera
+    b.add_quad(((0.6, 0.0, 0.0), (0.0, 0.5, 0.0), (0.5, 0.0, 0.0)), one)
+    b.add_quad(((0.0, 0.0, 8.0), (0.0, 6.0, 0.0), (6.0, 0.0, 0.0)), wall)  # behind the camera, facing the mirrors
+    b.add_point_light("lamp", (0.0, 1.0, 6.0), intensity=20.0)
+    b.set_camera([CameraKey(0.0, (0.0, 0.0, 5.0), (0.0, 0.0, 0.0))], fov_deg=30.0, resolution=(40, 30))
+    return b.build("mirror_back")
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
-def test02_chains_that_end_at_the_first_depth(backend, on_every_device, at_parity):
+def test02_a_two_sided_mirror_reflects_from_its_back(backend, on_every_device, at_parity):
+    """The back of a two-sided mirror reflects (its Fresnel term of the cosine's magnitude; the reflected direction is
+    the same about either side's normal) and the chains reach the wall behind the camera; the back of a one-sided one
+    ends the chain (Mitsuba's one-sided conductor is black there)."""
+    scene = _mirror_back()
+    tracer = make(backend, scene)
+    got, want, c_dev, c_host = _stage(scene, tracer, 48, 36, max_depth=5)
+    assert len(on_every_device) == 1 and len(want.points) > 0
+    column = want.points.pixel % 48
+    assert column.max() < 24  # every shading point came through the two-sided mirror (the image's left half)
+    _agree(backend, got, want, at_parity)
+    if backend == "mitsuba-llvm":
+        assert got.rays_per_depth == want.rays_per_depth and c_dev == c_host
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test03_chains_that_end_at_the_first_depth(backend, on_every_device, at_parity):
     """max_depth 1: the specular surfaces the first rays reach end their chains (no shading point, no next depth)."""
     from suite.harness import runner
 
@@ -97,7 +133,7 @@ def test02_chains_that_end_at_the_first_depth(backend, on_every_device, at_parit
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test03_frames_take_the_device_chains_on_cuda_only_and_never_for_glossy_cones_or_overlays(backend, calls_of):
+def test04_frames_take_the_device_chains_on_cuda_only_and_never_for_glossy_cones_or_overlays(backend, calls_of):
     from suite.harness import runner
 
     scene = runner.load_scene("gallery")
@@ -110,7 +146,7 @@ def test03_frames_take_the_device_chains_on_cuda_only_and_never_for_glossy_cones
 
 
 @pytest.mark.parametrize("backend", backend_params("mitsuba-llvm"))
-def test04_the_bench_replays_the_device_chains_rays(backend, monkeypatch, calls_of):
+def test05_the_bench_replays_the_device_chains_rays(backend, monkeypatch, calls_of):
     """`splitbench bench quake_drt` part rays: where the chains run on the device they record their rays, so the raw
     replay traces the same rays as on the host path (and the numpy-fed raw gets them copied)."""
     from methods.quake_drt import bench
