@@ -48,13 +48,13 @@ def shading_samples(scene, tracer, t_s: float, width: int, height: int, seeds: n
     n = width * height
     traced = out.pop("traced", None)
     tracer.counters["rays_intersect"] += n if traced is None else dev.sum_u32(traced)
-    prim = dev.to_host(out["prim"], np.int64)
-    valid = prim >= 0
-    h = {name: dev.to_host(value, np.float64) for name, value in out.items() if name != "prim"}
-    return Surface(valid=valid, prim=prim, u=h["u"], v=h["v"], p=h["p"], ng=h["ng"], ns=h["ns"], ng_view=h["ng_view"],
-                   ns_view=h["ns_view"], albedo=h["albedo"], emission=h["emission"],
-                   material=h["material"].astype(np.int64), o=np.broadcast_to(cam64, (n, 3)).copy(), d=h["d"],
-                   t=h["t"], overlay_rgb=np.zeros((n, 3)), overlay_t=np.ones(n))
+    names = list(out)
+    h = dict(zip(names, dev.to_host_all([out[k] for k in names],
+                                        [np.int64 if k in ("prim", "material") else np.float64 for k in names])))
+    return Surface(valid=h["prim"] >= 0, prim=h["prim"], u=h["u"], v=h["v"], p=h["p"], ng=h["ng"], ns=h["ns"],
+                   ng_view=h["ng_view"], ns_view=h["ns_view"], albedo=h["albedo"], emission=h["emission"],
+                   material=h["material"], o=np.broadcast_to(cam64, (n, 3)).copy(), d=h["d"], t=h["t"],
+                   overlay_rgb=np.zeros((n, 3)), overlay_t=np.ones(n))
 
 
 def _kernel(dev, ops, seeds, width: int, height: int) -> dict:

@@ -244,38 +244,32 @@ class Device:
 
     def to_host(self, value, dtype=None, with_bytes: bool = False):
         """Copies a Dr.Jit array to a numpy array (vectors of width 3 or 2 come back as (N, 3) / (N, 2) rows) and
-        counts the bytes. The one place device data becomes host memory."""
-        dr = self.dr
-        if dr.depth_v(value) > 1:
-            # Interleave on the device (x0 y0 z0 x1 ...) into a private buffer: on llvm_ad_rgb numpy then views it
-            # (no second copy; the array keeps the buffer alive), on cuda_ad_rgb it is one device-to-host copy.
-            flat = dr.ravel(value, order="F")
-            dr.eval(flat)
-            a = np.asarray(flat.numpy()).reshape(-1, len(value))
-        else:
-            dr.eval(value)
-            a = np.array(value.numpy())  # a copy: the device array may change later (scatters)
-        nbytes = int(a.nbytes)  # what crossed, before any conversion on the host
-        if dtype is not None and a.dtype != np.dtype(dtype):
-            a = a.astype(dtype)
-        self.counters["bytes_to_host"] += nbytes
-        self.counters["copies_to_host"] += 1
-        return HostCopy(a, nbytes) if with_bytes else a
+        counts the bytes. The one place device data becomes host memory (:meth:`to_host_all` for several)."""
+        return self.to_host_all([value], [dtype], with_bytes)[0]
 
-    def to_host_all(self, values, dtypes=None) -> list:
-        """:meth:`to_host` of several arrays, evaluated together first (arrays of one size in one kernel, where one
-        :meth:`to_host` each would launch a kernel each for their gathers and interleaving)."""
+    def to_host_all(self, values, dtypes=None, with_bytes: bool = False) -> list:
+        """:meth:`to_host` of several arrays, evaluated together first: arrays of one size in one kernel, where a
+        :meth:`to_host` each launches a kernel each for their gathers and interleaving."""
         dr = self.dr
+        if not values:
+            return []
         dtypes = [None] * len(values) if dtypes is None else dtypes
+        # Vectors are interleaved on the device (x0 y0 z0 x1 ...) into a private buffer: on llvm_ad_rgb numpy then
+        # views it (no second copy; the array keeps the buffer alive), on cuda_ad_rgb it is one device-to-host copy.
         flat = [dr.ravel(v, order="F") if dr.depth_v(v) > 1 else v for v in values]
         dr.eval(*flat)
         out = []
         for v, f, dtype in zip(values, flat, dtypes):
-            a = np.asarray(f.numpy())
-            a = a.reshape(-1, len(v)) if dr.depth_v(v) > 1 else np.array(a)  # a vector's buffer is private
-            self.counters["bytes_to_host"] += int(a.nbytes)
+            if dr.depth_v(v) > 1:
+                a = np.asarray(f.numpy()).reshape(-1, len(v))
+            else:
+                a = np.array(f.numpy())  # a copy: the device array may change later (scatters)
+            nbytes = int(a.nbytes)  # what crossed, before any conversion on the host
+            if dtype is not None and a.dtype != np.dtype(dtype):
+                a = a.astype(dtype)
+            self.counters["bytes_to_host"] += nbytes
             self.counters["copies_to_host"] += 1
-            out.append(a.astype(dtype) if dtype is not None and a.dtype != np.dtype(dtype) else a)
+            out.append(HostCopy(a, nbytes) if with_bytes else a)
         return out
 
     def to_device(self, array: np.ndarray, dtype):

@@ -100,20 +100,16 @@ class DeviceGBuffer:
         dev = self.device
         names = _HOST_FIELDS if names is None else tuple(names)
         h, w = self.height, self.width
-        out, nbytes = {}, 0
-        for name in _HOST_FIELDS:
-            if name not in names:
-                out[name] = None
-                continue
-            if name == "motion" and self.motion is None:
-                out[name] = np.zeros((h, w, 2), np.float32)
-                continue
-            dtype = {"position": np.float64, "prim": np.int32, "valid": bool, "material": np.int32,
-                     "kind": np.int8}.get(name, np.float32)
-            copy = dev.to_host(self.get(name), dtype, with_bytes=True)
-            nbytes += copy.nbytes
-            a = copy.array
-            out[name] = a.reshape((h, w) + a.shape[1:])
+        out = {name: None for name in _HOST_FIELDS}
+        if "motion" in names and self.motion is None:
+            out["motion"] = np.zeros((h, w, 2), np.float32)
+        copied = [name for name in _HOST_FIELDS if name in names and out[name] is None]
+        dtypes = [{"position": np.float64, "prim": np.int32, "valid": bool, "material": np.int32,
+                   "kind": np.int8}.get(name, np.float32) for name in copied]
+        copies = dev.to_host_all([self.get(name) for name in copied], dtypes, with_bytes=True)  # one evaluation
+        nbytes = sum(c.nbytes for c in copies)
+        for name, copy in zip(copied, copies):
+            out[name] = copy.array.reshape((h, w) + copy.array.shape[1:])
         g = GBuffer(camera_position=np.asarray(self.camera_position, np.float32), **out)
         return (g, nbytes) if with_bytes else g
 
