@@ -29,10 +29,11 @@ from methods.quake_drt.rng import DIM_SECONDARY
 from suite.core.trace.base import MAX_RAY_LENGTH
 
 
-# The devices the chains run on in a frame. On llvm_ad_rgb the host's compiled passes are faster: the wavefront traces
-# about a thousand Dr.Jit operations from Python and launches about 110 kernels per call whatever the size (gallery
-# 320x180 on 2 cores: 32 ms against 18-28 ms on the host, 79 against 57 ms at 640x360), and a recorded function
-# (dr.freeze) records afresh for every new array width, which a wavefront's depths all have.
+# The devices the chains run on in a frame. On llvm_ad_rgb they gain nothing over the host's compiled passes: the
+# wavefront traces about a thousand Dr.Jit operations from Python and launches about 110 kernels per call whatever the
+# size (gallery on 2 cores, interleaved: 19-21 ms against 18-19 ms on the host at 320x180, of which 7 ms run in
+# kernels; 49-51 ms for both at 640x360; 99 against 105 ms at 960x540), and a recorded function (dr.freeze) records
+# afresh for every new array width, which a wavefront's depths all have.
 DEVICES = ("cuda",)
 
 
