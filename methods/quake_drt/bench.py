@@ -92,6 +92,12 @@ def _against_raw(stage, log, tracer, repeats: int, numpy_raw, records=()) -> dic
             "raw_numpy_ms": 1e3 * t["raw_numpy"]}
 
 
+def _host_rays(dev, records) -> list:
+    """``(origins, directions, lengths)`` float32 host copies of recorded device rays (``("i" | "o", Ray3f)``): what
+    the numpy-fed raw entry points trace."""
+    return [tuple(dev.to_host_all([ray.o, ray.d, ray.maxt], [np.float32] * 3)) for _, ray in records]
+
+
 def _rates(entry: dict, rays: int, raw_rays: int) -> dict:
     """The entry's rays per second and its ratios to raw (and to the numpy-fed raw where it was timed)."""
     ms, raw_ms = entry["ms"], entry["raw_ms"]
@@ -182,10 +188,7 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     # rays per iteration ("o", Ray3f), already in device memory (copied to numpy here for the numpy-fed raw only).
     records = [c for c in captured if len(c) == 2]
     chunks = [c for c in captured if len(c) == 3]
-    dev = getattr(tracer, "device", None)
-    for _, ray in records:
-        o, d = dev.to_host(ray.o, np.float32), dev.to_host(ray.d, np.float32)
-        chunks.append((o, d, dev.to_host(ray.maxt, np.float32)))
+    chunks += _host_rays(getattr(tracer, "device", None), records)
     o_all = np.concatenate([c[0] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     d_all = np.concatenate([c[1] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     l_all = np.concatenate([c[2] for c in chunks]) if chunks else np.zeros(0, np.float32)
@@ -234,10 +237,8 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
     # closest hits, directly or through walk_past; where its chains run on the device they record their rays there).
     recorder, records = RecordingTracer(tracer, device=True), []
     result = stage(recorder, records)
-    dev = getattr(tracer, "device", None)
-    for _, ray in records:  # the device chains' rays, copied for the numpy-fed raw only
-        recorder.log.append(("i", dev.to_host(ray.o, np.float32), dev.to_host(ray.d, np.float32),
-                             dev.to_host(ray.maxt, np.float32)))
+    log = list(recorder.log)  # the host queries; the device chains' rays are replayed from device memory
+    recorder.log += [("i", *rays) for rays in _host_rays(getattr(tracer, "device", None), records)]  # numpy-fed raw
     raw_rays = recorder.rays
     entry = {"scene": scene.name, "repeats": repeats, "rays_per_depth": [int(n) for n in result.rays_per_depth],
              "specular_pixels": int(len(np.unique(result.points.pixel))) if len(result.points) else 0}
@@ -245,7 +246,6 @@ def bench_secondary(scene, tracer, resolution, t_s: float, repeats: int, backend
         return {**entry, "ms": _median_ms(stage, repeats)[0], "rays": 0, "rays_per_s": float("nan"),
                 "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
 
-    log = recorder.log[:len(recorder.log) - len(records)]  # rays already on the device are replayed from there
     timed = _against_raw(stage, log, tracer, repeats, recorder.replay, records)
     # backend queries: the continuation rays and any alpha walk past transparent texels
     return {**entry, **_rates(timed, f.rays(stage), raw_rays)}

@@ -5,11 +5,11 @@ Mitsuba variant: the device twin of :func:`methods.quake_drt.secondary._chains` 
 A wavefront per depth, every array in device memory: each chain's branches (the conductor Fresnel reflection of a
 mirror; the reflection and refraction of glass and water with the dielectric Fresnel term, or one of them picked by
 the chain's random number), the rays of the kept branches in the host pass's order (by material, then branch, then
-chain: an order found on the host from a few bytes per chain), their offset origins, the closest hits with the alpha walk, the surfaces
-through the G-buffer's ``hit_surface`` with float64 barycentrics (the primary stage's surface pass), and the split into
-shading points (diffuse, glossy) and the chains that go on (mirror, glass). Every operation is the host pass's in the
-same float64 order, so on ``llvm_ad_rgb`` the points, their order, the emission and the query counts equal the host
-stage's bit for bit (tests/methods/quake_drt/test_device_secondary.py).
+chain: an order found on the host from a few bytes per chain), their offset origins, the closest hits with the alpha
+walk, the surfaces through the G-buffer's ``hit_surface`` with float64 barycentrics (the primary stage's surface pass),
+and the split into shading points (diffuse, glossy) and the chains that go on (mirror, glass). Every operation is the
+host pass's in the same float64 order, so on ``llvm_ad_rgb`` the points, their order, the emission and the query
+counts equal the host stage's bit for bit (tests/methods/quake_drt/test_device_secondary.py).
 
 The chains run there on ``cuda_ad_rgb`` (:data:`DEVICES`); on ``llvm_ad_rgb`` the host's compiled passes are faster,
 and the tests run this wavefront there to hold it to the host's bits. What comes back to the host, per depth: the
@@ -123,9 +123,9 @@ def _branches(dev, tb, v, all_branches: bool, dim: int):
     cos_i = _dot(w, n)
     mirror = dr.gather(dev.Int32, tb.kind, mid) == 0
     # mirror: the reflection about the (two-sided: viewer-side) shading normal
-    flip = mirror & dr.gather(dev.Bool, tb.twosided, mid) & (cos_i < 0)
-    n_m = dr.select(flip, -n, n)
-    cos_m = dr.select(mirror & dr.gather(dev.Bool, tb.twosided, mid), dr.abs(cos_i), cos_i)
+    two_sided = mirror & dr.gather(dev.Bool, tb.twosided, mid)
+    n_m = dr.select(two_sided & (cos_i < 0), -n, n)
+    cos_m = dr.select(two_sided, dr.abs(cos_i), cos_i)
     eta_c, k_c = dr.gather(V3, tb.cond_eta, mid), dr.gather(V3, tb.cond_k, mid)
     spec_r, spec_t = dr.gather(V3, tb.spec_r, mid), dr.gather(V3, tb.spec_t, mid)
     w_m = V3(*[_fresnel_conductor(dev, cos_m, eta_c[c], k_c[c]) * spec_r[c] for c in range(3)])

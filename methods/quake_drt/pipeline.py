@@ -291,8 +291,9 @@ class Pipeline:
         emission = surf.emission.copy()
         if sec is not None:
             emission += sec.emission
-        info.update(direct_device_bytes=(dev.copied_bytes - copied0) if dev is not None else 0, lights=len(lights), shading_points=len(pts), candidates=stats.candidates,
-                    selected=stats.selected, shadow_rays=stats.rays, shadow_rays_visible=stats.visible,
+        info.update(direct_device_bytes=(dev.copied_bytes - copied0) if dev is not None else 0, lights=len(lights),
+                    shading_points=len(pts), candidates=stats.candidates, selected=stats.selected,
+                    shadow_rays=stats.rays, shadow_rays_visible=stats.visible,
                     points_unclustered=int((rows == table.all_row).sum()) if s.cull_lights and table.n_clusters else 0,
                     rows=rows, points=pts, lights_obj=lights)
         return RawFrame(g, surf, np.asarray(seeds, np.uint32), illum.reshape(h, w, 3), albedo.reshape(h, w, 3),

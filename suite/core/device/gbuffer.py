@@ -267,9 +267,10 @@ def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in, bary64: bool = False) 
     ``prim``, ``u``, ``v``: the hits (``valid`` where ``prim >= 0``); ``ray_o`` (Point3d, world) and ``d64`` (Vector3d):
     the rays in float64, whose intersection with the hit triangle's plane is the position (the tracers' float32
     distance carries an error that grows with the distance from the origin); ``d_in`` (Vector3d): the direction the
-    normals are turned against; ``bary64``: see below. Returns ``position`` (Point3d), ``ng`` and ``ns`` (Vector3d, geometric and shading
-    normal facing the ray; ``ng_raw`` and ``ns_raw`` as wound and interpolated), ``albedo`` (Vector3f: the material's
-    constant or its texture), ``mat`` (Int32) and ``front`` (Bool: the ray met the geometric normal's front)."""
+    normals are turned against; ``bary64``: the first barycentric's precision (below). Returns ``position``
+    (Point3d), ``ng`` and ``ns`` (Vector3d, geometric and shading normal facing the ray; ``ng_raw`` and ``ns_raw`` as
+    wound and interpolated), ``albedo`` (Vector3f: the material's constant or its texture), ``mat`` (Int32) and
+    ``front`` (Bool: the ray met the geometric normal's front)."""
     dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
     tables = dev.tables
     vid = tables.triangle(prim, valid)

@@ -92,7 +92,8 @@ def device_replay(dev, log=(), records=()):
     import time
 
     calls = [(kind, dev.raw_ray(dev.to_device(o, dev.Point3f), dev.to_device(d, dev.Vector3f),
-                                dev.to_device(np.asarray(length, np.float32), dev.Float))) for kind, o, d, length in log]
+                                dev.to_device(np.asarray(length, np.float32), dev.Float)))
+             for kind, o, d, length in log]
     calls += list(records)
     rays = int(sum(dev.dr.width(ray.d) for _, ray in calls))
 

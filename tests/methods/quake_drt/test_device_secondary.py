@@ -49,7 +49,8 @@ def _agree(backend, got, want, at_parity):
 
 
 def _gold_mirror(scene):
-    """gallery with its mirror made of two-sided gold (a conductor whose Fresnel term is not 1, seen from both sides)."""
+    """gallery with its mirror made of two-sided gold (a conductor whose Fresnel term is not 1, seen from both
+    sides)."""
     import dataclasses
 
     mats = [dataclasses.replace(m, conductor_eta=np.array([0.143, 0.374, 1.442]),
