@@ -30,6 +30,8 @@ from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 from suite.core.trace.base import MAX_RAY_LENGTH
 
 INV_PI = 0.3183098861837907  # direct._generate's literal 1 / pi
+LIGHT_RECORD = 8  # float64 values per light record
+TRI_RECORD = 16  # float64 values per light triangle record (a power of two: one packet gather)
 
 
 def _pcg(dev, v):
@@ -69,16 +71,22 @@ class _Tables:
 
         self.row_lights = dev.to_device(_nonempty(table.row_lights, np.uint32), dev.UInt32)  # every row may be empty
         self.row_cdf = dev.to_device(_nonempty(row_cdf, np.float64), dev.Float64) if mode != "uniform" else None
-        self.is_point = dev.to_device(np.asarray(lights.kind == POINT, np.uint32), dev.UInt32)
-        self.pos = dev.to_device(np.asarray(lights.position, np.float64), dev.Vector3d)
-        self.rgb = dev.to_device(np.asarray(lights.rgb, np.float64), dev.Vector3d)
-        self.area = dev.to_device(np.asarray(lights.area, np.float64), dev.Float64)
+        # one 8-value record per light (position, colour, area, 1 for a point light), read by one packet gather
+        rec = np.zeros((max(1, len(lights.kind)), LIGHT_RECORD), np.float64)
+        if len(lights.kind):
+            rec[:, 0:3] = np.asarray(lights.position, np.float64).reshape(-1, 3)
+            rec[:, 3:6] = np.asarray(lights.rgb, np.float64).reshape(-1, 3)
+            rec[:, 6] = np.asarray(lights.area, np.float64)
+            rec[:, 7] = np.asarray(lights.kind == POINT, np.float64)
+        self.light_rec = dev.to_device(rec.reshape(-1), dev.Float64)
         self.tri_off = dev.to_device(np.asarray(lights.tri_offsets, np.uint32), dev.UInt32)
         tri = lambda a, w: _nonempty(np.asarray(a, np.float64).reshape(-1, w), np.float64)  # noqa: E731
-        self.tri_p0 = dev.to_device(tri(lights.tri_p0, 3), dev.Vector3d)
-        self.tri_e1 = dev.to_device(tri(lights.tri_e1, 3), dev.Vector3d)
-        self.tri_e2 = dev.to_device(tri(lights.tri_e2, 3), dev.Vector3d)
-        self.tri_n = dev.to_device(tri(lights.tri_normal, 3), dev.Vector3d)
+        # one 16-value record per triangle (p0, e1, e2, normal, padding): a packet gather reads it in a few vector
+        # loads where twelve scalar gathers cost a gather instruction each
+        rec = np.zeros((max(1, len(tri(lights.tri_p0, 3))), TRI_RECORD), np.float64)
+        for c, a in enumerate((lights.tri_p0, lights.tri_e1, lights.tri_e2, lights.tri_normal)):
+            rec[:, 3 * c:3 * c + 3] = tri(a, 3)
+        self.tri_rec = dev.to_device(rec.reshape(-1), dev.Float64)
         self.tri_cdf = dev.to_device(_nonempty(lights.tri_cdf, np.float64), dev.Float64)
         self.rep_tri = dev.to_device(np.maximum(np.asarray(lights.rep_tri, np.int64), 0).astype(np.uint32), dev.UInt32)
 
@@ -173,7 +181,8 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         light = dr.gather(U, tab.row_lights, a + j, valid)
         dimbase = U(DIM_LIGHTS) + 4 * light if k == 0 else dr.select(subsample, dimbase, U(DIM_LIGHTS) + 4 * light)
         # -- the point on the light (direct._generate) --------------------------------------------------------
-        is_point = dr.gather(U, tab.is_point, light, valid) != 0
+        rec = dr.gather(dev.m.ArrayXf64, tab.light_rec, light, valid, shape=(LIGHT_RECORD, n_pts))
+        is_point = rec[7] != 0.0
         on_area = valid & ~is_point
         if soft:
             ta = dr.gather(U, tab.tri_off, light, on_area)
@@ -185,12 +194,9 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         else:
             tri = dr.gather(U, tab.rep_tri, light, on_area)
             b1 = b2 = F64(1.0 / 3.0)
-        p0 = dr.gather(dev.Vector3d, tab.tri_p0, tri, on_area)
-        e1 = dr.gather(dev.Vector3d, tab.tri_e1, tri, on_area)
-        e2 = dr.gather(dev.Vector3d, tab.tri_e2, tri, on_area)
-        lp = dr.gather(dev.Vector3d, tab.pos, light, valid & is_point)
-        y = [dr.select(is_point, lp[c], p0[c] + b1 * e1[c] + b2 * e2[c]) for c in range(3)]
-        ny = dr.gather(dev.Vector3d, tab.tri_n, tri, on_area)
+        r = dr.gather(dev.m.ArrayXf64, tab.tri_rec, tri, on_area, shape=(TRI_RECORD, n_pts))
+        p0, e1, e2, ny = r[0:3], r[3:6], r[6:9], r[9:12]
+        y = [dr.select(is_point, rec[c], p0[c] + b1 * e1[c] + b2 * e2[c]) for c in range(3)]
         tx, ty, tz = y[0] - o64.x, y[1] - o64.y, y[2] - o64.z
         d2 = tx * tx + ty * ty + tz * tz
         dist = dr.sqrt(d2)
@@ -199,15 +205,14 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         above = dx * ng.x + dy * ng.y + dz * ng.z > 0.0  # else the surface shadows itself
         cos_x = dx * ns.x + dy * ns.y + dz * ns.z
         g = weight / dr.maximum(d2, min_d2)
-        cos_y = -(dx * ny.x + dy * ny.y + dz * ny.z)
+        cos_y = -(dx * ny[0] + dy * ny[1] + dz * ny[2])
         facing = is_point | (cos_y > 0.0)  # else behind the one-sided emitter
-        g = dr.select(is_point, g, g * (cos_y * dr.gather(F64, tab.area, light, on_area)))
+        g = dr.select(is_point, g, g * (cos_y * rec[6]))
         g = g * (cos_x * INV_PI)
         active = valid & above & (cos_x > 0.0) & facing
         d = dev.Vector3f(dev.Float(dx), dev.Float(dy), dev.Float(dz))
         length = dr.maximum(dev.Float(dist * SHADOW_TMAX_SCALE), 0.0)
-        rgb = dr.gather(dev.Vector3d, tab.rgb, light, active)
-        return active, d, length, dev.Vector3d(g * rgb.x, g * rgb.y, g * rgb.z), dup
+        return active, d, length, dev.Vector3d(g * rec[3], g * rec[4], g * rec[5]), dup
 
     dup0 = [dr.zeros(U64, n_pts) for _ in range(words)]
     if record is not None:
