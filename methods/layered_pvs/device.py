@@ -819,13 +819,21 @@ def _past(dev, t):
     return dr.reinterpret_array(dev.Float, dr.reinterpret_array(dev.UInt32, scaled) + 1)
 
 
-def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max_skips: int = 256):
+def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max_skips: int = 256,
+         wavefront: bool | None = None):
     """Ray-traced depth peeling (§4.1.2) on the device, the layers of ``server.peel`` (its queries and their bits on
-    ``llvm_ad_rgb``): per layer a wavefront of closest-hit queries, each ray from just past its previous hit (the
-    float32 ``past``; origin advanced by ``float32(d * start)`` in float32 as ``as_rays`` advances it), a hit on a
-    triangle outside ``keep_mask`` (bool per face; None keeps every hit) stepped over and traced again (at most
-    ``max_skips`` queries per layer), the rays still going compacted between queries. The rays go up once; the
-    layers come back once. Returns (t, prim, u, v) as (layers, N) host arrays (inf / -1 / 0 where empty)."""
+    ``llvm_ad_rgb``): each ray traced from just past its previous hit (the float32 ``past``; origin advanced by
+    ``float32(d * start)`` in float32 as ``as_rays`` advances it), a hit on a triangle outside ``keep_mask`` (bool per
+    face; None keeps every hit) stepped over and traced again (at most ``max_skips`` queries per layer), a kept hit
+    stored as the ray's next layer. The rays go up once; the layers come back once. Returns (t, prim, u, v) as
+    (layers, N) host arrays (inf / -1 / 0 where empty).
+
+    Two schedules give the same queries and bits. The default is one kernel: a loop per ray over its queries, every
+    layer and step-over of the ray in turn (no host round trip between queries; a packet keeps tracing while one of
+    its rays still has layers to find). ``wavefront`` (and every call while :func:`recording` is active, whose raw
+    replay needs each query's rays) runs one query per kernel over the rays still going, compacted between queries
+    (one host synchronisation and Python-traced kernel per query: at 480x270 with a PVS of a third of the faces, ten
+    queries of 3 to 168 k rays)."""
     from suite.core.trace.base import MAX_RAY_LENGTH
 
     dr, F, F64, U, I = dev.dr, dev.Float, dev.Float64, dev.UInt32, dev.Int32
@@ -841,6 +849,13 @@ def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max
     p_out = dr.full(I, -1, layers * n)
     u_out, v_out = dr.zeros(F, layers * n), dr.zeros(F, layers * n)
     max_length = float(MAX_RAY_LENGTH)
+    if wavefront is None:
+        wavefront = _RECORDS is not None
+    if not wavefront:
+        queries = _peel_loop(dev, o_all, d_all, keep, layers, max_skips, (t_out, p_out, u_out, v_out))
+        tracer.counters["rays_intersect"] += int(queries)
+        host = dev.to_host_all([t_out, p_out, u_out, v_out])
+        return tuple(a.reshape(layers, n) for a in (host[0], host[1].astype(np.int64), host[2], host[3]))
     idx, start = dev.arange(n), dr.zeros(F, n)
     queries = 0
     for k in range(layers):
@@ -879,3 +894,43 @@ def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max
     tracer.counters["rays_intersect"] += int(queries)
     host = [dev.to_host(a).reshape(layers, n) for a in (t_out, p_out, u_out, v_out)]
     return host[0], host[1].astype(np.int64), host[2], host[3]
+
+
+def _peel_loop(dev, o_all, d_all, keep, layers: int, max_skips: int, out) -> int:
+    """:func:`peel`'s queries as one kernel (its default schedule): per ray a loop whose iterations are the ray's
+    queries in the wavefront schedule's order, with the same operations, so the same layers. A query's kept hit is
+    the ray's next layer (the ray goes on from just past it while layers remain), a hit outside the PVS is stepped
+    over (at most ``max_skips`` queries per layer), a miss ends the ray. Writes the layers into ``out`` (t, prim,
+    u, v; layer-major) and returns the backend queries made."""
+    from suite.core.trace.base import MAX_RAY_LENGTH
+
+    dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
+    t_out, p_out, u_out, v_out = out
+    n = dr.width(d_all)
+    max_length = float(MAX_RAY_LENGTH)
+    idx = dev.arange(n)
+    n_mem = dev.opaque(U, n)  # the layer stride, from memory: a literal would bake the ray count into the kernel
+
+    def body(k, tries, start, alive, queries):
+        o_local = dev.Point3f(*[o_all[c] + F(d_all[c] * start) for c in range(3)])
+        length = dr.minimum(dr.maximum(F(F64(max_length) - F64(start)), 0.0), max_length)
+        t, prim, u, v, traced = dev.closest(o_local, d_all, length, alive)
+        ti = t + start
+        hit = alive & (prim >= 0)
+        kept = hit & (dr.gather(U, keep, U(dr.maximum(prim, 0)), hit) != 0) if keep is not None else hit
+        slot = k * n_mem + idx
+        for buf, value in ((t_out, ti), (p_out, prim), (u_out, u), (v_out, v)):
+            dr.scatter(buf, value, slot, kept)
+        queries = queries + (dr.select(alive, U(1), U(0)) if traced is None else dr.select(alive, traced, U(0)))
+        skip = hit & ~kept
+        tries = tries + 1
+        go_on = (kept & (k + 1 < layers)) | (skip & (tries < max_skips))
+        start = dr.select(hit, _past(dev, ti), start)
+        tries = dr.select(kept, U(0), tries)
+        k = dr.select(kept, k + 1, k)
+        return k, tries, start, go_on, queries
+
+    state = (dr.zeros(U, n), dr.zeros(U, n), dr.zeros(F, n), dr.full(dev.Bool, True, n), dr.zeros(U, n))
+    _, _, _, _, queries = dr.while_loop(state, lambda k, tries, start, alive, q: alive, body)
+    dev.eval(t_out, p_out, u_out, v_out, queries)
+    return dev.sum_u32(queries, layers * max_skips * (1 + MAX_ALPHA_LAYERS))
