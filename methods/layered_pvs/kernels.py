@@ -37,12 +37,12 @@ def _offset_origin(px, py, pz, nx, ny, nz, shift, offset_ulps, float_scale):
 
 
 def _bounce(rows, ns, ng, p, thr, use_rr, u_rr, u_dir, shift, offset_ulps, float_scale,
-            rows_out, thr_out, o64_out, d64_out, o32_out, d32_out):
+            rows_out, thr_out, o64_out, d64_out, d32_out):
     """One path-tracing bounce before the closest-hit query (§4.4): Russian roulette (survival probability
     ``min(max throughput, 0.95)``, survivors' throughput divided by it) when ``use_rr``, a cosine-weighted
     direction about the shading normal, and the paths that survive both and leave above the geometric normal,
-    compacted: row, throughput, float64 and float32 ray origins (offset along the geometric normal) and
-    directions. Returns their count. The reference: the loop head of ``server.path_trace_reference`` with
+    compacted: row, throughput, float64 ray origins (offset along the geometric normal; the tracer rounds them to
+    float32 in its own frame, where the offset is sized), float64 and float32 directions. Returns their count. The reference: the loop head of ``server.path_trace_reference`` with
     ``server._cosine_hemisphere``."""
     k = 0
     two_pi = 2 * np.pi
@@ -79,7 +79,6 @@ def _bounce(rows, ns, ng, p, thr, use_rr, u_rr, u_dir, shift, offset_ulps, float
         thr_out[k, 0], thr_out[k, 1], thr_out[k, 2] = t0, t1, t2
         o64_out[k, 0], o64_out[k, 1], o64_out[k, 2] = ox, oy, oz
         d64_out[k, 0], d64_out[k, 1], d64_out[k, 2] = d0, d1, d2
-        o32_out[k, 0], o32_out[k, 1], o32_out[k, 2] = np.float32(ox), np.float32(oy), np.float32(oz)
         d32_out[k, 0], d32_out[k, 1], d32_out[k, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
         k += 1
     return k
@@ -138,11 +137,12 @@ def _choose_light(px, py, pz, u, per_point, power, centres, min_d2, cdf, pmf, w)
 
 def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, power, centres, min_d2, cdf, pmf,
                   n_point, point_pos, point_int, tri, tri_n, tri_l, tri_area, shift, offset_ulps, float_scale,
-                  shadow_scale, ng_out, ns_out, thr_out, sel_rows, sel_o32, sel_d32, sel_tmax32, sel_contrib):
+                  shadow_scale, ng_out, ns_out, thr_out, sel_rows, sel_o64, sel_d32, sel_tmax32, sel_contrib):
     """A new path vertex (§4.4): normals turned toward the incoming ray (``server._facing``), throughput times the
     albedo, and next-event estimation towards one light (``server.LightSampler.sample``): for the vertices where
     the light is above the shading normal (and an area light's sample faces the vertex), the compacted shadow
-    ray (float32 origin offset to the light's side of the geometric normal, direction, length short of the light
+    ray (float64 origin offset to the light's side of the geometric normal, rounded by the tracer in its own frame;
+    float32 direction and length short of the light
     by ``shadow_scale``), the path row and the contribution ``throughput * weight * cos / pi`` it adds when the
     ray is unoccluded. Returns the number of shadow rays."""
     k = 0
@@ -201,7 +201,7 @@ def _shade_vertex(rows, p, ng_raw, ns_raw, alb, d64, thr, u_sel, u2, per_point, 
         seg = np.sqrt((qx * qx + qy * qy) + qz * qz)
         c = cos_x / np.pi
         sel_rows[k] = rows[i]
-        sel_o32[k, 0], sel_o32[k, 1], sel_o32[k, 2] = np.float32(ox), np.float32(oy), np.float32(oz)
+        sel_o64[k, 0], sel_o64[k, 1], sel_o64[k, 2] = ox, oy, oz
         sel_d32[k, 0], sel_d32[k, 1], sel_d32[k, 2] = np.float32(wx), np.float32(wy), np.float32(wz)
         sel_tmax32[k] = np.float32(seg * shadow_scale)
         sel_contrib[k, 0], sel_contrib[k, 1], sel_contrib[k, 2] = t0 * w0 * c, t1 * w1 * c, t2 * w2 * c
@@ -405,13 +405,13 @@ def warm_up() -> None:
     one, one32, b = np.ones(1), np.ones(1, np.float32), np.zeros(1, np.bool_)
     shift = np.zeros(3)
     k["_bounce"](i64, f64, f64, f64, f64.copy(), True, one, np.zeros((1, 2)), shift, *OFFSET, i64.copy(), f64.copy(),
-                 f64.copy(), f64.copy(), f32.copy(), f32.copy())
+                 f64.copy(), f64.copy(), f32.copy())
     k["_compact_hits"](np.zeros(1, np.int32), one32, one32, i64, f64, f64, f64, np.zeros(1, np.int32), one32.copy(),
                        one32.copy(), i64.copy(), f64.copy(), f64.copy(), f64.copy())
     for per_point in (True, False):
         k["_shade_vertex"](i64, f64, f64, f64, f32, f64, f64, one, np.zeros((1, 2)), per_point, one, f64, 1.0, one, one,
                            1, f64, f64, np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), shift,
-                           *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f32.copy(), f32.copy(),
+                           *OFFSET, 1.0, f64.copy(), f64.copy(), f64.copy(), i64.copy(), f64.copy(), f32.copy(),
                            np.zeros(1, np.float32), f64.copy())
     k["_add_unoccluded"](f64.copy(), i64, f64, b)
     k["_path_moments"](f64, f64, 1, 1, f32.copy(), one.copy(), one.copy())

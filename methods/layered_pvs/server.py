@@ -722,10 +722,10 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
     ng = np.take(frag.geo_normal, frag_rows, axis=0)
     ns = np.take(frag.normal, frag_rows, axis=0)
     o64, d64 = np.empty((total, 3)), np.empty((total, 3))
-    o32, d32 = np.empty((total, 3), np.float32), np.empty((total, 3), np.float32)
+    d32 = np.empty((total, 3), np.float32)
     prim, u, v = np.empty(total, np.int32), np.empty(total, np.float32), np.empty(total, np.float32)
     sel_rows, sel_tmax32 = np.empty(total, np.int64), np.empty(total, np.float32)
-    sel_o32, sel_d32 = np.empty((total, 3), np.float32), np.empty((total, 3), np.float32)
+    sel_o64, sel_d32 = np.empty((total, 3)), np.empty((total, 3), np.float32)
     sel_contrib = np.empty((total, 3))
     no_rr = np.zeros(0)
     m = total
@@ -736,11 +736,13 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
         use_rr = depth >= rr_depth
         u_rr = rng.random(m) if use_rr else no_rr
         m = kern["_bounce"](rows[:m], ns, ng, p, thr[:m], use_rr, u_rr, rng.random((m, 2)), shift64, *offset,
-                            rows, thr, o64, d64, o32, d32)
+                            rows, thr, o64, d64, d32)
         if m == 0:
             break
-        # The rays are put in the tracing frame here, outside the lock a shared tracer is queried under.
-        hits = trace_local(tracer, local_rays(tracer, o32[:m], d32[:m]), o32[:m], d32[:m])
+        # The rays are put in the tracing frame here, outside the lock a shared tracer is queried under. The float64
+        # origins are rounded to float32 there, in the frame the offset is sized for: rounded in world coordinates
+        # first, an origin far from the frame's centre falls back onto its surface.
+        hits = trace_local(tracer, local_rays(tracer, o64[:m], d32[:m]), o64[:m], d32[:m])
         m = kern["_compact_hits"](hits.prim, hits.u, hits.v, rows[:m], o64[:m], d64[:m], thr[:m], prim, u, v, rows,
                                   o64, d64, thr)
         if m == 0:
@@ -752,11 +754,11 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
         u_sel, u2 = rng.random(m), rng.random((m, 2))
         ng, ns = np.empty((m, 3)), np.empty((m, 3))
         k = kern["_shade_vertex"](rows[:m], p, ng_raw, ns_raw, alb, d64[:m], thr[:m], u_sel, u2, *light_args, shift64,
-                                  *offset, SHADOW_TMAX_SCALE, ng, ns, thr, sel_rows, sel_o32, sel_d32, sel_tmax32,
+                                  *offset, SHADOW_TMAX_SCALE, ng, ns, thr, sel_rows, sel_o64, sel_d32, sel_tmax32,
                                   sel_contrib)
         if k:
-            query = local_rays(tracer, sel_o32[:k], sel_d32[:k], sel_tmax32[:k])
-            occ = tracer.occluded(sel_o32[:k], sel_d32[:k], 0.0, sel_tmax32[:k]) if query is None \
+            query = local_rays(tracer, sel_o64[:k], sel_d32[:k], sel_tmax32[:k])
+            occ = tracer.occluded(sel_o64[:k], sel_d32[:k], 0.0, sel_tmax32[:k]) if query is None \
                 else tracer.occluded_local(*query)
             kern["_add_unoccluded"](sample, sel_rows[:k], sel_contrib[:k], np.asarray(occ, np.bool_))
 
@@ -796,7 +798,7 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
                 break
             rows, p, ng, ns, thr, d_new = rows[live], p[live], ng[live], ns[live], thr[live], d_new[live]
             o = offset_ray_origin(p, ng, shift)
-            hits = tracer.intersect(o.astype(np.float32), d_new.astype(np.float32))
+            hits = tracer.intersect(o, d_new.astype(np.float32))  # float64 origins: rounded in the tracing frame
             hit = hits.prim >= 0
             rows, o, d_new, thr = rows[hit], o[hit], d_new[hit], thr[hit]
             if len(rows) == 0:
@@ -817,7 +819,7 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
                 side = np.where((_dot(wi[sel], ng[sel]) >= 0)[:, None], ng[sel], -ng[sel])
                 o = offset_ray_origin(p[sel], side, shift)
                 seg = np.linalg.norm(p[sel] + wi[sel] * dist[sel, None] - o, axis=1)
-                occ = tracer.occluded(o.astype(np.float32), wi[sel].astype(np.float32), 0.0,
+                occ = tracer.occluded(o, wi[sel].astype(np.float32), 0.0,
                                       (seg * SHADOW_TMAX_SCALE).astype(np.float32))
                 lit = sel[~occ]
                 sample[rows[lit]] += thr[lit] * wl[lit] * (cos_x[lit] / np.pi)[:, None]

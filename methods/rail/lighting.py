@@ -144,7 +144,9 @@ def trace_light_paths(scene, tracer, t_s: float, light_positions, light_intensit
     for bounce in range(1, int(max_bounces) + 1):
         if len(alive) == 0:
             break
-        hits = tracer.intersect(origin.astype(np.float32), direction.astype(np.float32))
+        # float64 origins: the tracer rounds them in its own frame, where the offset is sized (rounded in world
+        # coordinates first, an origin far from the frame's centre falls back onto its surface)
+        hits = tracer.intersect(origin, direction.astype(np.float32))
         ok = hits.prim >= 0
         if not ok.any():
             break

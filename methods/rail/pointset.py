@@ -163,7 +163,7 @@ def generate_point_set(scene, tracer, grid: GridGeometry, *, target_points: int,
     origin = offset_ray_origin(np.repeat(src.position, k, axis=0), np.repeat(src.normal, k, axis=0), shift)
     u = rng.random((len(origin), 2))
     direction = cosine_directions(np.repeat(src.normal, k, axis=0), u[:, 0], u[:, 1])
-    hits = tracer.intersect(origin.astype(np.float32), direction.astype(np.float32))
+    hits = tracer.intersect(origin, direction.astype(np.float32))  # float64 origins: rounded in the tracing frame
     ok = hits.prim >= 0
     ok[ok] = static[hits.prim[ok]]
     p, ng, _, _, _ = surface_attributes(scene, scene.positions, scene.normals, hits.prim[ok], hits.u[ok],
