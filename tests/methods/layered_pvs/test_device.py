@@ -479,7 +479,7 @@ def test16_the_host_paths_trace_the_same_light_on_embree_and_on_mitsuba(backend)
     # so the same light but for the backends' parity (a shadow ray or two). arena's walls lie far from the tracing
     # frame's centre in world coordinates (x = 23 against 2 in the frame): an offset origin rounded to float32 in
     # world coordinates falls back onto its wall, where embreex reports a hit at t = 0 and Mitsuba none, and the
-    # two estimates then differed on about 0.5 % of the fragments (about 0.3 % of the mean light).
+    # two estimates then differed on about 0.5 % of the fragments (0.2–0.4 % of the mean light).
     from suite.core.trace.recording import RecordingTracer
     from suite.harness import runner
 
