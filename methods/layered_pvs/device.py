@@ -624,8 +624,11 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     if position is None:
         position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
     p = dr.gather(dev.Point3d, position, fi)
-    ng = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
-    ns = dr.gather(dev.Vector3d, dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
+    twins = frag.device  # the normals where the device made the fragments, else uploaded
+    ng = dr.gather(dev.Vector3d, twins.geo_normal if twins is not None else
+                   dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
+    ns = dr.gather(dev.Vector3d, twins.normal if twins is not None else
+                   dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
     thr = dr.full(dev.Vector3d, 1.0, total)
     sample = dr.zeros(dev.Vector3d, total)
     live = dr.full(dev.Bool, True, total)
@@ -690,19 +693,61 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     return dev.to_host(path_samples(dev, frag, lights, spp, max_depth, rr_depth, seed), np.float64)
 
 
+def fragments(dev, layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float):
+    """``server.fragments`` on the device, with its bits on ``llvm_ad_rgb``: the layer samples' triangles and
+    barycentrics and their pixels' rays go up, :func:`suite.core.device.gbuffer.hit_surface` makes the surfaces
+    (``surface_attributes``' float64 operations, the normals turned towards the ray as ``_face_fragments`` turns them),
+    emission is kept on front faces, and the fields come back in one evaluation. The position and the normals stay on
+    the device as well (``Fragments.device``), for :func:`fragment_gbuffer`."""
+    from methods.layered_pvs.server import Fragments
+    from suite.core.device.gbuffer import hit_surface
+
+    dr = dev.dr
+    dev.tracer.update(t_s)  # the device's vertex tables at the update's time
+    # flat indices (three times faster than np.nonzero and (k, y, x) fancy indexing), in np.nonzero's order
+    shape = layers.prim.shape
+    flat = np.flatnonzero(layers.valid)
+    k, y, x = np.unravel_index(flat, shape)
+    n = len(flat)
+    pix = flat % (shape[1] * shape[2])
+    view_dir = np.take(np.ascontiguousarray(dirs64, np.float64), pix, axis=0)
+    if n == 0:
+        z64, z32 = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
+        return Fragments((k, y, x), z64, z64.copy(), z64.copy(), z32, z32.copy(), view_dir)
+    prim = dev.to_device(np.asarray(layers.prim).reshape(-1)[flat].astype(np.int32), dev.Int32)
+    u = dev.to_device(np.asarray(layers.u, np.float32).reshape(-1)[flat], dev.Float)
+    v = dev.to_device(np.asarray(layers.v, np.float32).reshape(-1)[flat], dev.Float)
+    o = dev.to_device(np.take(np.ascontiguousarray(origins64, np.float64), pix, axis=0), dev.Point3d)
+    d = dev.to_device(view_dir, dev.Vector3d)
+    valid = dr.full(dev.Bool, True, n)
+    hit = hit_surface(dev, prim, u, v, valid, o, d, d)
+    tables = dev.tables
+    emission = dr.select(hit.front, dr.gather(dev.Vector3f, tables.emission, hit.mat, valid), 0.0) \
+        if tables.any_emissive else dr.zeros(dev.Vector3f, n)
+    fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission]
+    host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32])
+    twins = SimpleNamespace(position=hit.position, geo_normal=hit.ng, normal=hit.ns)
+    return Fragments((k, y, x), *host, view_dir, device=twins)
+
+
 def fragment_gbuffer(dev, frag):
     """The fragments as a (1 x N) :class:`~suite.core.device.gbuffer.DeviceGBuffer` of albedo 1 without emission
     (``server._fragment_gbuffer`` on the device): float64 positions, the normals rounded to float32 as the G-buffer
-    keeps them."""
+    keeps them (from the fragments' device twins where :func:`fragments` made them, else uploaded)."""
     from suite.core.device.gbuffer import DeviceGBuffer
 
     dr = dev.dr
     n = len(frag.position)
     zeros = dr.zeros(dev.Float, n)
+    twins = frag.device
+    if twins is not None:
+        position, normal, geo_normal = twins.position, dev.Vector3f(twins.normal), dev.Vector3f(twins.geo_normal)
+    else:
+        position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
+        normal = dev.to_device(np.asarray(frag.normal, np.float32), dev.Vector3f)
+        geo_normal = dev.to_device(np.asarray(frag.geo_normal, np.float32), dev.Vector3f)
     g = DeviceGBuffer(device=dev, width=n, height=1, t_s=float("nan"), camera_position=np.zeros(3, np.float32),
-                      position=dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d),
-                      normal=dev.to_device(np.asarray(frag.normal, np.float32), dev.Vector3f),
-                      geo_normal=dev.to_device(np.asarray(frag.geo_normal, np.float32), dev.Vector3f),
+                      position=position, normal=normal, geo_normal=geo_normal,
                       albedo=dr.full(dev.Vector3f, 1.0, n), emission=None, depth=zeros, prim=dr.zeros(dev.Int32, n),
                       valid=dr.full(dev.Bool, True, n), view_dir=None, material=dr.zeros(dev.Int32, n), kind=None,
                       u=zeros, v=zeros)

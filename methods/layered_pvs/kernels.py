@@ -42,8 +42,8 @@ def _bounce(rows, ns, ng, p, thr, use_rr, u_rr, u_dir, shift, offset_ulps, float
     ``min(max throughput, 0.95)``, survivors' throughput divided by it) when ``use_rr``, a cosine-weighted
     direction about the shading normal, and the paths that survive both and leave above the geometric normal,
     compacted: row, throughput, float64 ray origins (offset along the geometric normal; the tracer rounds them to
-    float32 in its own frame, where the offset is sized), float64 and float32 directions. Returns their count. The reference: the loop head of ``server.path_trace_reference`` with
-    ``server._cosine_hemisphere``."""
+    float32 in its own frame, where the offset is sized), float64 and float32 directions. Returns their count. The
+    reference: the loop head of ``server.path_trace_reference`` with ``server._cosine_hemisphere``."""
     k = 0
     two_pi = 2 * np.pi
     for i in range(len(rows)):

@@ -203,7 +203,7 @@ class LayeredPVS(Method):
             sg.pixels = view.width * view.height
 
         with ctx.stage("path_trace", place="server") as sg:
-            frag = server.fragments(scene, layers, o64, d64, ctx.t_s)
+            frag = server.fragments(scene, layers, o64, d64, ctx.t_s, device=device)
             illum, m1, m2 = server.path_trace(scene, tracer, frag, ctx.t_s, int(p["spp"]), int(p["max_depth"]),
                                               int(p["rr_depth"]), ctx.rng)
             sg.pixels = len(frag.position)

@@ -320,6 +320,9 @@ class Fragments:
     albedo: np.ndarray      # (N, 3)
     emission: np.ndarray    # (N, 3) (front-facing emitters only)
     view_dir: np.ndarray    # (N, 3) float64
+    # made on a Dr.Jit device (methods.layered_pvs.device.fragments): the position (Point3d) and the normals
+    # (Vector3d) still there, for the device passes that read them (None otherwise)
+    device: SimpleNamespace | None = None
 
 
 def _facing(ng, ns, d):
@@ -330,12 +333,18 @@ def _facing(ng, ns, d):
     return ng_f, ns_f, flip[:, 0] < 0
 
 
-def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float) -> Fragments:
+def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float,
+              device=None) -> Fragments:
     """Every layer fragment's surface (:func:`suite.core.gbuffer.surface_attributes`), its normals facing the layer
     camera and its emission on front faces only. The gathers and the facing are compiled passes
     (:mod:`methods.layered_pvs.kernels`) with the bits of :func:`fragments_reference`; the fragments are split into
     contiguous runs, one per core (:data:`FRAGMENT_RUN_MIN` at least), each on a thread of its own (the passes
-    write their rows of shared outputs and release the GIL)."""
+    write their rows of shared outputs and release the GIL). ``device``: a Dr.Jit device (a Mitsuba tracer's) to
+    make them on instead (:func:`methods.layered_pvs.device.fragments`, the same bits on ``llvm_ad_rgb``)."""
+    if device is not None:
+        from methods.layered_pvs import device as layered_device
+
+        return layered_device.fragments(device, layers, origins64, dirs64, t_s)
     kern = kernels.jit()
     k, y, x = np.nonzero(layers.valid)
     n = len(k)

@@ -493,3 +493,71 @@ def test16_the_host_paths_trace_the_same_light_on_embree_and_on_mitsuba(backend)
     assert n > 5000 and embree.mean() > 0.1
     assert differ.sum() <= max(3, n // 2000), f"{differ.sum()} of {n} fragments differ"
     np.testing.assert_allclose(embree.mean(axis=0), mitsuba.mean(axis=0), rtol=2e-5)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name", ["gallery", "arena", "atrium"])
+def test17_device_fragments_are_the_host_passes_fragments(backend, scene_name, at_parity):
+    # The same layers (peeled on Embree) made into fragments by the compiled host passes and on the device: gallery's
+    # albedo texture, arena's moving platform at t = 0.5, atrium's emissive panels (front faces only). The device
+    # keeps the positions and normals for the path tracer's G-buffer (no upload of its own).
+    from methods.layered_pvs import device
+    from suite.harness import runner
+
+    t_s, size = 0.5, (96, 54)
+    scene = runner.load_scene(scene_name)
+    host = runner.make_tracer("embree", scene)
+    host.update(t_s)
+    view = sv.LayerView(scene.camera.pose_at(t_s), scene.camera.fov_deg * 1.1, *size)
+    o64, d64 = sv.view_rays(view)
+    layers = sv.peel(host, o64.astype(np.float32), d64.astype(np.float32), 3, shape=(size[1], size[0]))
+    want = sv.fragments(scene, layers, o64, d64, t_s)
+    tracer = runner.make_tracer(backend, scene)
+    got = sv.fragments(scene, layers, o64, d64, t_s, device=tracer.device)
+    assert len(want.position) > 4000 and got.device is not None and want.device is None
+    assert all(np.array_equal(a, b) for a, b in zip(got.index, want.index))
+    names = ("position", "geo_normal", "normal", "albedo", "emission", "view_dir")
+    for name in names:
+        assert getattr(got, name).dtype == getattr(want, name).dtype, name
+    if backend == "mitsuba-llvm":
+        for name in names:
+            assert np.array_equal(getattr(got, name), getattr(want, name)), name
+    else:
+        for name in names:
+            at_parity(getattr(got, name), getattr(want, name), share=0.999, rtol=1e-6, atol=1e-6)
+    if scene_name == "atrium":
+        assert want.emission.any() and not want.emission.all()
+    g = device.fragment_gbuffer(tracer.device, got)
+    assert np.array_equal(tracer.device.to_host(g.position), got.position)
+    empty = sv.Layers(*(np.full_like(a, -1 if a.dtype.kind == "i" else np.inf if name == "t" else 0)
+                        for name, a in zip(("t", "prim", "u", "v"), (layers.t, layers.prim, layers.u, layers.v))))
+    none = sv.fragments(scene, empty, o64, d64, t_s, device=tracer.device)
+    assert len(none.position) == 0 and none.position.shape == (0, 3)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test18_device_fragments_keep_emission_on_front_faces_only(backend):
+    # One of atrium's emissive panels (facing down) seen from above, through the ceiling, and from below: its
+    # fragments emit only where the layer camera sees its front, on the host and on the device alike.
+    from suite.core.scene.model import CameraPose
+    from suite.harness import runner
+
+    scene = runner.load_scene("atrium")
+    host, tracer = runner.make_tracer("embree", scene), runner.make_tracer(backend, scene)
+    host.update(0.5)
+    panel = [i for i, m in enumerate(scene.materials) if m.is_emissive][0]
+    tri = scene.positions[scene.faces[scene.face_material == panel]]
+    centre = tri.reshape(-1, 3).mean(axis=0)
+    normal = np.cross(tri[0, 1] - tri[0, 0], tri[0, 2] - tri[0, 0])
+    normal /= np.linalg.norm(normal)
+    emitting = {}
+    for side in (-1.0, 1.0):  # behind the panel, in front of it
+        view = sv.LayerView(CameraPose(centre + side * 2.0 * normal, centre, np.array([1.0, 0.0, 0.0])), 60.0, 48, 27)
+        o64, d64 = sv.view_rays(view)
+        layers = sv.peel(host, o64.astype(np.float32), d64.astype(np.float32), 4, shape=(27, 48))
+        on_panel = (layers.valid & (scene.face_material[np.maximum(layers.prim, 0)] == panel))[layers.valid]
+        want = sv.fragments(scene, layers, o64, d64, 0.5)
+        got = sv.fragments(scene, layers, o64, d64, 0.5, device=tracer.device)
+        assert on_panel.sum() > 50
+        emitting[side] = [(f.emission[on_panel].max(axis=1) > 0).mean() for f in (want, got)]
+    assert emitting[-1.0] == [0.0, 0.0] and emitting[1.0] == [1.0, 1.0]
