@@ -693,12 +693,13 @@ def path_trace(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, seed:
     return dev.to_host(path_samples(dev, frag, lights, spp, max_depth, rr_depth, seed), np.float64)
 
 
-def fragments(dev, layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float):
+def fragments(dev, layers, origins64: np.ndarray | None, dirs64: np.ndarray | None, t_s: float, view=None):
     """``server.fragments`` on the device, with its bits on ``llvm_ad_rgb``: the layer samples' triangles and
     barycentrics and their pixels' rays go up, :func:`suite.core.device.gbuffer.hit_surface` makes the surfaces
     (``surface_attributes``' float64 operations, the normals turned towards the ray as ``_face_fragments`` turns them),
     emission is kept on front faces, and the fields come back in one evaluation. The position and the normals stay on
-    the device as well (``Fragments.device``), for :func:`fragment_gbuffer`."""
+    the device as well (``Fragments.device``), for :func:`fragment_gbuffer`. ``view`` (``origins64`` and ``dirs64``
+    None): the layer view's rays, made on the device (:func:`view_rays`); the fragments' directions come back."""
     from methods.layered_pvs.server import Fragments
     from suite.core.device.gbuffer import hit_surface
 
@@ -710,24 +711,31 @@ def fragments(dev, layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float
     k, y, x = np.unravel_index(flat, shape)
     n = len(flat)
     pix = flat % (shape[1] * shape[2])
-    view_dir = np.take(np.ascontiguousarray(dirs64, np.float64), pix, axis=0)
     if n == 0:
         z64, z32 = np.zeros((0, 3)), np.zeros((0, 3), np.float32)
-        return Fragments((k, y, x), z64, z64.copy(), z64.copy(), z32, z32.copy(), view_dir)
+        return Fragments((k, y, x), z64, z64.copy(), z64.copy(), z32, z32.copy(), z64.copy())
     prim = dev.to_device(np.asarray(layers.prim).reshape(-1)[flat].astype(np.int32), dev.Int32)
     u = dev.to_device(np.asarray(layers.u, np.float32).reshape(-1)[flat], dev.Float)
     v = dev.to_device(np.asarray(layers.v, np.float32).reshape(-1)[flat], dev.Float)
-    o = dev.to_device(np.take(np.ascontiguousarray(origins64, np.float64), pix, axis=0), dev.Point3d)
-    d = dev.to_device(view_dir, dev.Vector3d)
+    if view is not None:
+        pix_d = dev.to_device(pix.astype(np.uint32), dev.UInt32)
+        d = dr.gather(dev.Vector3d, view_rays(dev, view)[0], pix_d)
+        position = np.asarray(view.pose.position, np.float64)
+        o = dev.Point3d(*[dr.full(dev.Float64, float(position[c]), n) for c in range(3)])
+        view_dir = None  # comes back with the surfaces
+    else:
+        view_dir = np.take(np.ascontiguousarray(dirs64, np.float64), pix, axis=0)
+        o = dev.to_device(np.take(np.ascontiguousarray(origins64, np.float64), pix, axis=0), dev.Point3d)
+        d = dev.to_device(view_dir, dev.Vector3d)
     valid = dr.full(dev.Bool, True, n)
     hit = hit_surface(dev, prim, u, v, valid, o, d, d)
     tables = dev.tables
     emission = dr.select(hit.front, dr.gather(dev.Vector3f, tables.emission, hit.mat, valid), 0.0) \
         if tables.any_emissive else dr.zeros(dev.Vector3f, n)
-    fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission]
-    host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32])
+    fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission] + ([d] if view_dir is None else [])
+    host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32, np.float64])
     twins = SimpleNamespace(position=hit.position, geo_normal=hit.ng, normal=hit.ns)
-    return Fragments((k, y, x), *host, view_dir, device=twins)
+    return Fragments((k, y, x), *host[:5], host[5] if view_dir is None else view_dir, device=twins)
 
 
 def fragment_gbuffer(dev, frag):
@@ -864,8 +872,19 @@ def _past(dev, t):
     return dr.reinterpret_array(dev.Float, dr.reinterpret_array(dev.UInt32, scaled) + 1)
 
 
-def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max_skips: int = 256,
-         wavefront: bool | None = None):
+def view_rays(dev, view):
+    """The layer view's pixel-centre rays made on the device (``server.view_rays``' bits): the float64 directions
+    (:func:`suite.core.device.gbuffer.camera_rays`), and the float32 tracing-frame rays the peeling traces, the
+    origin rounded as the host path rounds ``view_rays``' origins (float32 world point, then the frame shift)."""
+    from suite.core.device.gbuffer import camera_rays
+
+    n = int(view.width) * int(view.height)
+    d64, _, _ = camera_rays(dev, view.pose, view.fov_deg, int(view.width), int(view.height))
+    return d64, _origin_local(dev, view.pose.position, n), dev.Vector3f(d64)
+
+
+def peel(dev, origins: np.ndarray | None, dirs: np.ndarray | None, layers: int, keep_mask, max_skips: int = 256,
+         wavefront: bool | None = None, view=None):
     """Ray-traced depth peeling (§4.1.2) on the device, the layers of ``server.peel`` (its queries and their bits on
     ``llvm_ad_rgb``): each ray traced from just past its previous hit (the float32 ``past``; origin advanced by
     ``float32(d * start)`` in float32 as ``as_rays`` advances it), a hit on a triangle outside ``keep_mask`` (bool per
@@ -878,16 +897,23 @@ def peel(dev, origins: np.ndarray, dirs: np.ndarray, layers: int, keep_mask, max
     its rays still has layers to find). ``wavefront`` (and every call while :func:`recording` is active, whose raw
     replay needs each query's rays) runs one query per kernel over the rays still going, compacted between queries
     (one host synchronisation and Python-traced kernel per query: at 480x270 with a PVS of a third of the faces, ten
-    queries of 3 to 168 k rays)."""
+    queries of 3 to 168 k rays).
+
+    ``view`` (a ``server.LayerView``, with ``origins`` and ``dirs`` None): the view's pixel-centre rays, made on the
+    device (:func:`view_rays`) instead of going up."""
     from suite.core.trace.base import MAX_RAY_LENGTH
 
     dr, F, F64, U, I = dev.dr, dev.Float, dev.Float64, dev.UInt32, dev.Int32
     tracer = dev.tracer
-    n = len(dirs)
-    shift = np.asarray(tracer.shift, np.float64)
-    o_loc = (np.asarray(origins, np.float32).astype(np.float64) - shift).astype(np.float32)
-    o_all = dev.to_device(o_loc, dev.Point3f)
-    d_all = dev.to_device(np.asarray(dirs, np.float32), dev.Vector3f)
+    if view is not None:
+        _, o_all, d_all = view_rays(dev, view)
+        n = dr.width(d_all)
+    else:
+        n = len(dirs)
+        shift = np.asarray(tracer.shift, np.float64)
+        o_loc = (np.asarray(origins, np.float32).astype(np.float64) - shift).astype(np.float32)
+        o_all = dev.to_device(o_loc, dev.Point3f)
+        d_all = dev.to_device(np.asarray(dirs, np.float32), dev.Vector3f)
     use_keep = keep_mask is not None
     keep = dev.to_device(np.asarray(keep_mask, np.uint32), U) if use_keep else None
     t_out = dr.full(F, float("inf"), layers * n)

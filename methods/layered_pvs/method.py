@@ -197,13 +197,18 @@ class LayeredPVS(Method):
         in_pvs[pvs_ids] = True
 
         with ctx.stage("layers", place="server") as sg:
-            o64, d64 = server.view_rays(view)
-            layers = server.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), L,
-                                 keep_mask=in_pvs, shape=(view.height, view.width))
+            if device is not None:  # the view's rays are made on the device, for the peeling and the fragments
+                o64 = d64 = None
+                layers = server.peel(tracer, None, None, L, keep_mask=in_pvs, shape=(view.height, view.width),
+                                     view=view)
+            else:
+                o64, d64 = server.view_rays(view)
+                layers = server.peel(tracer, o64.astype(np.float32), d64.astype(np.float32), L,
+                                     keep_mask=in_pvs, shape=(view.height, view.width))
             sg.pixels = view.width * view.height
 
         with ctx.stage("path_trace", place="server") as sg:
-            frag = server.fragments(scene, layers, o64, d64, ctx.t_s, device=device)
+            frag = server.fragments(scene, layers, o64, d64, ctx.t_s, device=device, view=view)
             illum, m1, m2 = server.path_trace(scene, tracer, frag, ctx.t_s, int(p["spp"]), int(p["max_depth"]),
                                               int(p["rr_depth"]), ctx.rng)
             sg.pixels = len(frag.position)

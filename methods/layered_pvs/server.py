@@ -150,8 +150,8 @@ class Layers:
         return self.valid.sum(axis=0)
 
 
-def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, max_skips: int = 256,
-         shape=None, keep_mask: np.ndarray | None = None) -> Layers:
+def peel(tracer, origins: np.ndarray | None, dirs: np.ndarray | None, layers: int, keep=None, max_skips: int = 256,
+         shape=None, keep_mask: np.ndarray | None = None, view: LayerView | None = None) -> Layers:
     """Ray-traced depth peeling (§4.1.2): layer k is the nearest hit past layer k-1's hit (``tmin`` = that distance
     plus a relative epsilon). ``keep_mask`` (bool per triangle; or ``keep``, prim -> bool) restricts primary hits to
     the PVS: a hit on another triangle is stepped over and the ray traced again from just past it (secondary and
@@ -161,7 +161,17 @@ def peel(tracer, origins: np.ndarray, dirs: np.ndarray, layers: int, keep=None, 
     Between queries, one compiled pass (:mod:`methods.layered_pvs.kernels`) takes in the hits and writes the next
     query's rays, already in the tracer's frame and with their lengths (the arrays ``Tracer.intersect`` would make
     of origins, directions and ``tmin``), into buffers allocated once; a ``keep`` callable takes
-    :func:`peel_reference` instead."""
+    :func:`peel_reference` instead. ``view`` (``origins`` and ``dirs`` None): the layer view's pixel-centre rays
+    (:func:`view_rays`), made on the device on a Dr.Jit tracer."""
+    if view is not None and getattr(tracer, "device", None) is not None and keep is None:
+        from methods.layered_pvs import device as layered_device
+
+        out = layered_device.peel(tracer.device, None, None, layers, keep_mask, max_skips, view=view)
+        shp = (layers,) + tuple(shape) if shape is not None else (layers, view.width * view.height)
+        return Layers(*(a.reshape(shp) for a in out))
+    if view is not None:
+        o64, d64 = view_rays(view)
+        origins, dirs = o64.astype(np.float32), d64.astype(np.float32)
     if keep is not None and keep_mask is None:
         return peel_reference(tracer.intersect, origins, dirs, layers, keep, max_skips, shape)
     shp = (layers,) + tuple(shape) if shape is not None else (layers, len(dirs))
@@ -333,18 +343,21 @@ def _facing(ng, ns, d):
     return ng_f, ns_f, flip[:, 0] < 0
 
 
-def fragments(scene, layers: Layers, origins64: np.ndarray, dirs64: np.ndarray, t_s: float,
-              device=None) -> Fragments:
+def fragments(scene, layers: Layers, origins64: np.ndarray | None, dirs64: np.ndarray | None, t_s: float,
+              device=None, view: LayerView | None = None) -> Fragments:
     """Every layer fragment's surface (:func:`suite.core.gbuffer.surface_attributes`), its normals facing the layer
     camera and its emission on front faces only. The gathers and the facing are compiled passes
     (:mod:`methods.layered_pvs.kernels`) with the bits of :func:`fragments_reference`; the fragments are split into
     contiguous runs, one per core (:data:`FRAGMENT_RUN_MIN` at least), each on a thread of its own (the passes
     write their rows of shared outputs and release the GIL). ``device``: a Dr.Jit device (a Mitsuba tracer's) to
-    make them on instead (:func:`methods.layered_pvs.device.fragments`, the same bits on ``llvm_ad_rgb``)."""
+    make them on instead (:func:`methods.layered_pvs.device.fragments`, the same bits on ``llvm_ad_rgb``). ``view``
+    (``origins64`` and ``dirs64`` None): the layer view's rays (:func:`view_rays`; made on the device there)."""
     if device is not None:
         from methods.layered_pvs import device as layered_device
 
-        return layered_device.fragments(device, layers, origins64, dirs64, t_s)
+        return layered_device.fragments(device, layers, origins64, dirs64, t_s, view=view)
+    if view is not None and origins64 is None:
+        origins64, dirs64 = view_rays(view)
     kern = kernels.jit()
     k, y, x = np.nonzero(layers.valid)
     n = len(k)
