@@ -347,6 +347,18 @@ def test11_the_device_pvs_is_the_host_passes_pvs(backend, scene_name, offset, at
         assert len(np.setxor1d(got, want)) <= 0.01 * len(want)
 
 
+def _peeling_view(scene_name, backend):
+    """(scene, tracer of ``backend``, its 80x45 layer view at 1.1x the FOV at t = 0.5); "far:" moves the scene 1e4
+    away."""
+    from suite.harness import runner
+
+    scene = runner.load_scene(scene_name.removeprefix("far:"))
+    if scene_name.startswith("far:"):
+        scene = scene.translated([1e4, -1e4, 1e4])
+    tracer = runner.make_tracer(backend, scene)
+    return scene, tracer, sv.LayerView(scene.camera.pose_at(0.5), scene.camera.fov_deg * 1.1, 80, 45)
+
+
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("scene_name, layers, keep_share, max_skips",
                          [("gallery", 4, None, 256), ("gallery", 6, 0.5, 256), ("arena", 3, 0.3, 2),
@@ -358,14 +370,8 @@ def test12_device_depth_peeling_gives_the_host_passes_layers(backend, scene_name
     # view at 1.1x the FOV, some pixels on the sky in arena; living_room moved 1e4 away ("far:"). The device's two
     # schedules (one kernel, a query per kernel) give the same layers and query counts.
     from methods.layered_pvs import device
-    from suite.harness import runner
 
-    far = scene_name.startswith("far:")
-    scene = runner.load_scene(scene_name.removeprefix("far:"))
-    if far:
-        scene = scene.translated([1e4, -1e4, 1e4])
-    tracer = runner.make_tracer(backend, scene)
-    view = sv.LayerView(scene.camera.pose_at(0.5), scene.camera.fov_deg * 1.1, 80, 45)
+    scene, tracer, view = _peeling_view(scene_name, backend)
     o64, d64 = sv.view_rays(view)
     keep = None if keep_share is None else np.random.default_rng(5).random(scene.num_faces) < keep_share
     args = (o64.astype(np.float32), d64.astype(np.float32), layers)
@@ -569,14 +575,7 @@ def test19_the_view_rays_made_on_the_device_give_the_host_layers_and_fragments(b
     # The layer view's pixel-centre rays made on the device (no upload) against the host's view_rays handed over:
     # the same layers, query counts and fragments, directions included; living_room also moved 1e4 away (the
     # camera's origin rounded as the host rounds it).
-    from suite.harness import runner
-
-    far = scene_name.startswith("far:")
-    scene = runner.load_scene(scene_name.removeprefix("far:"))
-    if far:
-        scene = scene.translated([1e4, -1e4, 1e4])
-    tracer = runner.make_tracer(backend, scene)
-    view = sv.LayerView(scene.camera.pose_at(0.5), scene.camera.fov_deg * 1.1, 80, 45)
+    scene, tracer, view = _peeling_view(scene_name, backend)
     o64, d64 = sv.view_rays(view)
     keep = np.random.default_rng(3).random(scene.num_faces) < 0.6
     counts = []
