@@ -720,8 +720,7 @@ def fragments(dev, layers, origins64: np.ndarray | None, dirs64: np.ndarray | No
     if view is not None:
         pix_d = dev.to_device(pix.astype(np.uint32), dev.UInt32)
         d = dr.gather(dev.Vector3d, view_rays(dev, view)[0], pix_d)
-        position = np.asarray(view.pose.position, np.float64)
-        o = dev.Point3d(*[dr.full(dev.Float64, float(position[c]), n) for c in range(3)])
+        o = dev.Point3d(*dev.opaques([float(x) for x in view.pose.position]))  # from memory: no kernel per pose
         view_dir = None  # comes back with the surfaces
     else:
         view_dir = np.take(np.ascontiguousarray(dirs64, np.float64), pix, axis=0)
@@ -790,7 +789,8 @@ def path_moments(dev, sample, direct, n: int, spp: int):
     dr, F64 = dev.dr, dev.Float64
     illum = m1 = m2 = None
     for k in range(int(spp)):
-        x = dr.gather(dev.Vector3d, sample, dev.arange(n) + k * n) + direct
+        # the offset from memory: the fragment count changes every update, and a literal would compile anew
+        x = dr.gather(dev.Vector3d, sample, dev.arange(n) + dev.opaque(dev.UInt32, k * n)) + direct
         lum = (x.x * 0.2126 + x.y * 0.7152) + x.z * 0.0722
         if illum is None:
             illum, m1, m2 = x, lum, lum * lum
@@ -844,7 +844,7 @@ def compute_pvs(dev, views, fov_deg: float, width: int, height: int) -> np.ndarr
     for pose in views:
         d64, _, _ = camera_rays(dev, pose, fov_deg, width, height)
         d32 = dev.Vector3f(d64)
-        o_local = _origin_local(dev, pose.position, n)
+        o_local = _origin_local(dev, pose.position)
         _, prim, _, _, traced = dev.closest(o_local, d32, length)
         dr.scatter(marks, U(1), U(dr.maximum(prim, 0)), prim >= 0)
         dr.eval(marks, *([traced] if traced is not None else []))
@@ -854,12 +854,14 @@ def compute_pvs(dev, views, fov_deg: float, width: int, height: int) -> np.ndarr
     return np.nonzero(dev.to_host(marks))[0].astype(np.int64)
 
 
-def _origin_local(dev, position, n: int):
+def _origin_local(dev, position):
     """A camera at ``position`` as every pixel's tracing-frame origin, rounded as the host path rounds it: the
-    float32 world point (``camera_rays(dtype=float32)``), then ``float32(float64(o) - shift)`` (``as_rays``)."""
+    float32 world point (``camera_rays(dtype=float32)``), then ``float32(float64(o) - shift)`` (``as_rays``). One
+    value per coordinate, read from memory (broadcast against the pixels' directions): as literals, every new camera
+    position compiled the PVS, peeling and fragment kernels afresh (20-130 ms each on llvm_ad_rgb)."""
     o32 = np.asarray(position, np.float64).astype(np.float32)
     local = (o32.astype(np.float64) - np.asarray(dev.tracer.shift, np.float64)).astype(np.float32)
-    return dev.Point3f(*[dev.dr.full(dev.Float, float(x), n) for x in local])
+    return dev.Point3f(*[dev.Float(v) for v in dev.opaques([float(x) for x in local])])  # float32 values: exact
 
 
 def _past(dev, t):
@@ -878,9 +880,8 @@ def view_rays(dev, view):
     origin rounded as the host path rounds ``view_rays``' origins (float32 world point, then the frame shift)."""
     from suite.core.device.gbuffer import camera_rays
 
-    n = int(view.width) * int(view.height)
     d64, _, _ = camera_rays(dev, view.pose, view.fov_deg, int(view.width), int(view.height))
-    return d64, _origin_local(dev, view.pose.position, n), dev.Vector3f(d64)
+    return d64, _origin_local(dev, view.pose.position), dev.Vector3f(d64)
 
 
 def peel(dev, origins: np.ndarray | None, dirs: np.ndarray | None, layers: int, keep_mask, max_skips: int = 256,
@@ -935,7 +936,7 @@ def peel(dev, origins: np.ndarray | None, dirs: np.ndarray | None, layers: int, 
             if dr.width(idx) == 0:
                 break
             d = dr.gather(dev.Vector3f, d_all, idx)
-            o0 = dr.gather(dev.Point3f, o_all, idx)
+            o0 = o_all if dr.width(o_all) == 1 else dr.gather(dev.Point3f, o_all, idx)  # one origin: the view's
             o_local = dev.Point3f(*[o0[c] + F(d[c] * start) for c in range(3)])
             length = dr.minimum(dr.maximum(F(F64(max_length) - F64(start)), 0.0), max_length)
             t, prim, u, v, traced = dev.closest(o_local, d, length)

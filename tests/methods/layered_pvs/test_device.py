@@ -599,3 +599,43 @@ def test19_the_view_rays_made_on_the_device_give_the_host_layers_and_fragments(b
         assert (handed.prim == made.prim).mean() >= 0.99
         for name in names:
             at_parity(getattr(got, name), getattr(want, name), share=0.999, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test20_a_new_camera_pose_reuses_the_server_kernels(backend):
+    # The server's device passes read the per-update values (camera position, fragment count) from memory, so an
+    # update from another pose launches the kernels the previous one compiled: literals there compiled the PVS,
+    # peeling and fragment kernels afresh for every pose (20-130 ms each on llvm_ad_rgb) and the moments' kernel for
+    # every fragment count.
+    import drjit as dr
+
+    from suite.harness import runner
+
+    scene = runner.load_scene("living_room")
+    tracer = runner.make_tracer(backend, scene)
+    keep = np.random.default_rng(4).random(scene.num_faces) < 0.8
+
+    def update(t_s):
+        pose = scene.camera.pose_at(t_s)
+        view = sv.LayerView(pose, scene.camera.fov_deg * 1.1, 64, 36)
+        sv.compute_pvs(tracer, [pose], view.fov_deg, 64, 36)
+        layers = sv.peel(tracer, None, None, 3, keep_mask=keep, shape=(36, 64), view=view)
+        frag = sv.fragments(scene, layers, None, None, t_s, device=tracer.device, view=view)
+        sv.path_trace(scene, tracer, frag, t_s, 2, 4, 3, np.random.default_rng(0))
+        return len(frag.position)
+
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        hashes, sizes = [], []
+        # two poses first: one kernel of the direct light comes in two variants (fused with what was evaluated)
+        for t_s in (0.5, 0.9, 1.3, 1.7):
+            dr.kernel_history()
+            sizes.append(update(t_s))
+            hashes.append({k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert min(sizes) > 0 and len(set(sizes)) > 1  # other poses, other fragment counts
+    known = hashes[0] | hashes[1]
+    for later in hashes[2:]:
+        assert later <= known, f"{len(later - known)} kernels compiled for a new pose"
