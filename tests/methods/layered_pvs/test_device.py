@@ -628,14 +628,15 @@ def test20_a_new_camera_pose_reuses_the_server_kernels(backend):
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         hashes, sizes = [], []
-        # two poses first: one kernel of the direct light comes in two variants (fused with what was evaluated)
-        for t_s in (0.5, 0.9, 1.3, 1.7):
+        # three poses first: the direct light's recorded visibility kernel (Device.frozen) is recorded again in its
+        # first calls, up to twice, as Dr.Jit's freeze turns inputs that changed from constants into values in memory
+        for t_s in (0.5, 0.9, 1.3, 1.7, 2.1):
             dr.kernel_history()
             sizes.append(update(t_s))
             hashes.append({k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT})
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, was)
     assert min(sizes) > 0 and len(set(sizes)) > 1  # other poses, other fragment counts
-    known = hashes[0] | hashes[1]
-    for later in hashes[2:]:
+    known = hashes[0] | hashes[1] | hashes[2]
+    for later in hashes[3:]:
         assert later <= known, f"{len(later - known)} kernels compiled for a new pose"
