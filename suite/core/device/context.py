@@ -543,6 +543,17 @@ class DeviceHits:
     v: object  # Float
 
 
+ROW = 4  # values per vertex position, normal and face row on the device (a power of two: one packet gather)
+
+
+def _rows(a, dtype, width: int) -> np.ndarray:
+    """(N, 3) ``a`` as a flat ``dtype`` array of (N, ``width``) rows, zero-padded."""
+    a = np.asarray(a).reshape(-1, 3)
+    out = np.zeros((len(a), width), dtype)
+    out[:, :3] = a
+    return out.reshape(-1)
+
+
 class SceneTables:
     """The scene's per-vertex, per-face and per-material data on the device, as the G-buffer and the alpha test read
     them: world vertex positions and shading normals at the tracer's time (float32, moving vertices updated on
@@ -558,10 +569,13 @@ class SceneTables:
         t_s = device.tracer._time_s
         positions = scene.positions_at(t_s)
         normals = scene.normals_at(t_s)
-        self.vpos = dev.to_device(np.ascontiguousarray(positions, np.float32).reshape(-1), F)
-        self.vnrm = dev.to_device(np.ascontiguousarray(normals, np.float32).reshape(-1), F)
+        # Vertex positions, normals and faces in rows of four (the fourth unused), UVs in rows of two: a packet gather
+        # (Dr.Jit's dr.gather of a power-of-two row) reads a row in a few vector loads where a gather per value
+        # costs a gather instruction each.
+        self.vpos = dev.to_device(_rows(positions, np.float32, ROW), F)
+        self.vnrm = dev.to_device(_rows(normals, np.float32, ROW), F)
         self.vuv = dev.to_device(np.ascontiguousarray(scene.uvs, np.float32).reshape(-1), F)
-        self.faces = dev.to_device(np.ascontiguousarray(scene.faces, np.uint32).reshape(-1), U)
+        self.faces = dev.to_device(_rows(scene.faces, np.uint32, ROW), U)
         self.face_material = dev.to_device(np.ascontiguousarray(scene.face_material, np.int32), I)
         self.face_object = dev.to_device(np.ascontiguousarray(scene.face_object, np.int32), I)
         mats = scene.materials
@@ -593,7 +607,7 @@ class SceneTables:
         dev, dr = self.dev, self.dev.dr
         rows = self.dynamic_vertices
         if self._dyn_index is None:
-            idx = (rows[:, None].astype(np.uint32) * 3 + np.arange(3, dtype=np.uint32)).reshape(-1)
+            idx = (rows[:, None].astype(np.uint32) * ROW + np.arange(3, dtype=np.uint32)).reshape(-1)
             self._dyn_index = dev.to_device(idx, dev.UInt32)
         normals = dev.scene.normals_at(t_s)
         p = dev.to_device(np.ascontiguousarray(positions_world[rows], np.float32).reshape(-1), dev.Float)
@@ -605,20 +619,22 @@ class SceneTables:
 
     # ---------------------------------------------------------------------------------------------- lookups
     def triangle(self, prim, active):
-        """Vertex indices (3 UInt32) of faces ``prim``."""
+        """Vertex indices (3 UInt32) of faces ``prim`` (one packet gather of the face's row)."""
         dr, U = self.dev.dr, self.dev.UInt32
-        base = U(dr.maximum(prim, 0)) * 3
-        return [dr.gather(U, self.faces, base + k, active) for k in range(3)]
+        row = dr.gather(self.dev.m.ArrayXu, self.faces, U(dr.maximum(prim, 0)), active, shape=(ROW, dr.width(prim)))
+        return [row[k] for k in range(3)]
 
-    def vertex3(self, table, vid, active, dtype=None):
+    def vertex(self, table, vid, active):
+        """Vector3f rows ``vid`` of ``vpos`` or ``vnrm`` (one packet gather each)."""
         dev = self.dev
-        p = self.dev.dr.gather(dev.Vector3f, table, vid, active)
-        return dev.Vector3d(p) if dtype == "f64" else p
+        row = dev.dr.gather(dev.m.ArrayXf, table, vid, active, shape=(ROW, dev.dr.width(vid)))
+        return dev.Vector3f(row[0], row[1], row[2])
 
     def uv_f64(self, vids, w, active):
         """Interpolated float64 texture coordinates ``(uv0 w0 + uv1 w1) + uv2 w2`` (numpy's order)."""
         dev = self.dev
-        uv = [dev.dr.gather(dev.Point2f, self.vuv, vid, active) for vid in vids]
+        uv = [dev.dr.gather(dev.m.ArrayXf, self.vuv, vid, active, shape=(2, dev.dr.width(vid))) for vid in vids]
+        uv = [dev.Point2f(r[0], r[1]) for r in uv]
         x = (dev.Float64(uv[0].x) * w[0] + dev.Float64(uv[1].x) * w[1]) + dev.Float64(uv[2].x) * w[2]
         y = (dev.Float64(uv[0].y) * w[0] + dev.Float64(uv[1].y) * w[1]) + dev.Float64(uv[2].y) * w[2]
         return x, y
@@ -652,6 +668,9 @@ class _TextureTable:
 
     def __init__(self, dev: Device, textures, channels: int):
         self.dev, self.channels = dev, channels
+        # Several channels: every texel as a row of four (the channels the lookup reads, a grey texture's value
+        # repeated, padding), read by one packet gather per texel; offsets then count rows.
+        self.packed = channels > 1
         offsets, widths, heights, stored, chunks, at = [], [], [], [], [], 0
         for tex in textures:
             if tex is None:
@@ -659,8 +678,15 @@ class _TextureTable:
                 continue
             tex = np.ascontiguousarray(tex, np.float32).reshape(tex.shape[0], tex.shape[1], -1)[:, :, :channels]
             offsets.append(at), widths.append(tex.shape[1]), heights.append(tex.shape[0]), stored.append(tex.shape[2])
-            chunks.append(tex.reshape(-1))
-            at += tex.size
+            if self.packed:
+                rows = np.zeros((tex.shape[0] * tex.shape[1], ROW), np.float32)
+                for j in range(channels):  # the channel lookup reads for channel j (the first where there is no j)
+                    rows[:, j] = tex.reshape(-1, tex.shape[2])[:, j if tex.shape[2] > j else 0]
+                chunks.append(rows.reshape(-1))
+                at += len(rows)
+            else:
+                chunks.append(tex.reshape(-1))
+                at += tex.size
         self.any = bool(chunks)
         self.offset = dev.to_device(np.array(offsets, np.uint32), dev.UInt32)
         self.width = dev.to_device(np.array(widths, np.int32), dev.Int32)
@@ -693,15 +719,24 @@ class _TextureTable:
         y0i = dr.clip(I(y0m), 0, h_i - 1)
         x1i = dr.select(x0i + 1 >= w_i, 0, x0i + 1)
         y1i = dr.select(y0i + 1 >= h_i, 0, y0i + 1)
-        c = dr.gather(U, self.stored, mat, active)
         wu = U(w_i)
+        a00, a10 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
+        a01, a11 = (1.0 - fx) * fy, fx * fy
+        out = []
+        if self.packed:
+            n = dr.width(mat)
+            t = [dr.gather(dev.m.ArrayXf, self.data, off + U(yi) * wu + U(xi), active, shape=(ROW, n))
+                 for yi, xi in ((y0i, x0i), (y0i, x1i), (y1i, x0i), (y1i, x1i))]
+            for channel in range(self.channels):
+                val = ((a00 * F64(t[0][channel]) + a10 * F64(t[1][channel])) + a01 * F64(t[2][channel])) \
+                    + a11 * F64(t[3][channel])
+                out.append(dr.select(active, val, 0.0))
+            return out
+        c = dr.gather(U, self.stored, mat, active)
 
         def texel(yi, xi, k):
             return F64(dr.gather(dev.Float, self.data, off + (U(yi) * wu + U(xi)) * c + k, active))
 
-        a00, a10 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy)
-        a01, a11 = (1.0 - fx) * fy, fx * fy
-        out = []
         for channel in range(self.channels):
             k = dr.select(c > channel, U(channel), U(0))
             val = ((a00 * texel(y0i, x0i, k) + a10 * texel(y0i, x1i, k)) + a01 * texel(y1i, x0i, k)) \

@@ -274,7 +274,7 @@ def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in, bary64: bool = False) 
     dr, F, F64, I = dev.dr, dev.Float, dev.Float64, dev.Int32
     tables = dev.tables
     vid = tables.triangle(prim, valid)
-    tri = [dev.Vector3d(dr.gather(dev.Vector3f, tables.vpos, vid[k], valid)) for k in range(3)]
+    tri = [dev.Vector3d(tables.vertex(tables.vpos, vid[k], valid)) for k in range(3)]
     # The first barycentric as surface_attributes computes it: in float32, then widened; ``bary64``: (1 - u) - v in
     # float64, as methods.quake_drt.primary's surface pass does.
     w0 = (1.0 - F64(u)) - F64(v) if bary64 else F64(1.0 - u - v)
@@ -289,7 +289,7 @@ def hit_surface(dev, prim, u, v, valid, ray_o, d64, d_in, bary64: bool = False) 
     t_plane = einsum_dot(tri[0] - ray_o, ng) / dr.select(ok, denom, 1.0)
     p_plane = ray_o + t_plane * d64
     position = dev.Point3d(dr.select(ok, p_plane, p_bary))
-    nrm = [dev.Vector3d(dr.gather(dev.Vector3f, tables.vnrm, vid[k], valid)) for k in range(3)]
+    nrm = [dev.Vector3d(tables.vertex(tables.vnrm, vid[k], valid)) for k in range(3)]
     ns = (nrm[0] * w[0] + nrm[1] * w[1]) + nrm[2] * w[2]
     ns_len = dr.sqrt((ns.x * ns.x + ns.y * ns.y) + ns.z * ns.z)
     ns_safe = dr.maximum(ns_len, 1e-30)
