@@ -27,28 +27,39 @@ UNROLL_LIGHTS = 16   # at most this many lights: DeviceLights.unrolled
 B3 = (1.0 / 16, 1.0 / 4, 3.0 / 8, 1.0 / 4, 1.0 / 16)    # the 5x5 B3-spline kernel of the numba pass
 
 
-def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix_angle: float, shift_scale: float,
+SVGF_ROW = 4  # float64 values per slot in the SVGF pass's tables (a power of two: one packet gather)
+
+
+def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, shift_scale: float,
                sigma_l: float, sigma_n: float):
-    """One à-trous pass with tap spacing ``step``: the grids are flat (H, W, L) arrays, the lanes the slots that hold
-    a fragment (``frags``, their flat indices, ascending); returns the new (colour Vector3d, variance Float64) grids
-    (0 in empty slots, as the numba pass leaves them)."""
+    """One à-trous pass with tap spacing ``step``: the grids are flat (H, W, L) tables of rows of four float64
+    (``cv``: colour and variance; ``pv``: position and 1 where the slot holds a fragment; ``nr``: normal and 0), one
+    packet gather per slot read; the lanes the slots that hold a fragment (``frags``, their flat indices,
+    ascending); returns the new ``cv`` table (0 in empty slots, as the numba pass leaves them)."""
     dr, F64, I32, U = dev.dr, dev.Float64, dev.Int32, dev.UInt32
     H, W, L = shape
+    X = dev.m.ArrayXf64
+    size = dr.width(frags)
+
+    def row(table, index, active=True):
+        return dr.gather(X, table, index, active, shape=(SVGF_ROW, size))
+
     pix = frags // L
     y, x = I32(pix // W), I32(pix % W)
     step_i = dev.opaque(I32, int(step))
     step_f = dev.opaque(F64, float(step))
     int_n = int(sigma_n) if sigma_n == math.floor(sigma_n) and 0 < sigma_n <= 1024 else 0
-    p = dr.gather(dev.Vector3d, pos, frags)
-    n = dr.gather(dev.Vector3d, nrm, frags)
-    c = dr.gather(dev.Vector3d, col, frags)
-    v = dr.gather(F64, var, frags)
+    r = row(pv, frags)
+    p = dev.Vector3d(r[0], r[1], r[2])
+    r = row(nr, frags)
+    n = dev.Vector3d(r[0], r[1], r[2])
+    r = row(cv, frags)
+    c, v = dev.Vector3d(r[0], r[1], r[2]), r[3]
     lc = (0.2126 * c.x + 0.7152 * c.y) + 0.0722 * c.z
     sd = dr.sqrt(dr.maximum(v, 0.0))
     foot = dr.gather(F64, dep, frags) * dev.opaque(F64, float(pix_angle))
     shift_scale = dev.opaque(F64, float(shift_scale))
     sigma_l = dev.opaque(F64, float(sigma_l))
-    size = dr.width(frags)
 
     def b3(k):  # B3[k + 2] for an offset k in -2..2 (the table's values, selected)
         a = dr.abs(k)
@@ -65,9 +76,9 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
         # §4.4.1: of the fragments at the tap, the one closest to the centre fragment's shifted plane; the search
         # stops at the tap's first empty layer (the gather's mask carries it on)
         def search(m, alive, best, best_d, best_pd):
-            alive = alive & dr.gather(dev.Bool, valid, base + U(m), alive)
-            q = dr.gather(dev.Vector3d, pos, base + U(m), alive)
-            pd = (n.x * (q.x - p.x) + n.y * (q.y - p.y)) + n.z * (q.z - p.z)
+            q = row(pv, base + U(m), alive)
+            alive = alive & (q[3] != 0.0)
+            pd = (n.x * (q[0] - p.x) + n.y * (q[1] - p.y)) + n.z * (q[2] - p.z)
             dd = dr.abs(pd - shift)
             better = alive & (dd < best_d)
             return (m + 1, alive, dr.select(better, m, best), dr.select(better, dd, best_d),
@@ -78,9 +89,10 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
             lambda m, alive, *_: alive & (m < L), search)
         found = best >= 0
         j = base + U(dr.maximum(best, 0))
-        cb = dr.gather(dev.Vector3d, col, j, found)
-        nb = dr.gather(dev.Vector3d, nrm, j, found)
-        vb = dr.gather(F64, var, j, found)
+        rb = row(cv, j, found)
+        cb, vb = dev.Vector3d(rb[0], rb[1], rb[2]), rb[3]
+        rn = row(nr, j, found)
+        nb = dev.Vector3d(rn[0], rn[1], rn[2])
         ln = (0.2126 * cb.x + 0.7152 * cb.y) + 0.0722 * cb.z
         ndot = (n.x * nb.x + n.y * nb.y) + n.z * nb.z
         ok = found & (ndot > 0.0)
@@ -106,12 +118,20 @@ def _svgf_pass(dev, shape, frags, col, var, pos, nrm, valid, dep, step: int, pix
     _, wsum, vsum, acc = dr.while_loop((dr.zeros(U, size), dr.zeros(F64, size), dr.zeros(F64, size),
                                         dr.zeros(dev.Vector3d, size)), lambda t, *_: t < 25, body)
     kept = wsum > 1e-150
-    out_c = dr.zeros(dev.Vector3d, H * W * L)
-    out_v = dr.zeros(F64, H * W * L)
-    dr.scatter(out_c, dr.select(kept, acc / wsum, c), frags)
-    dr.scatter(out_v, dr.select(kept, vsum / (wsum * wsum), v), frags)
-    dr.eval(out_c, out_v)
-    return out_c, out_v
+    out = dr.zeros(F64, H * W * L * SVGF_ROW)
+    new_c = dr.select(kept, acc / wsum, c)
+    new_v = dr.select(kept, vsum / (wsum * wsum), v)
+    dr.scatter(out, X(new_c.x, new_c.y, new_c.z, new_v), frags)
+    dr.eval(out)
+    return out
+
+
+def _svgf_rows(*columns) -> np.ndarray:
+    """(N,) float64 columns (up to four) as a flat table of rows of :data:`SVGF_ROW`, zero-padded."""
+    out = np.zeros((len(columns[0]), SVGF_ROW))
+    for k, col in enumerate(columns):
+        out[:, k] = col
+    return out.reshape(-1)
 
 
 def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations: int, shift_scale: float = 1.0,
@@ -119,16 +139,19 @@ def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations:
     """:func:`methods.layered_pvs.server._svgf_passes` on ``dev``: (H, W, L[, 3]) float64 grids (bool ``val``) in,
     the filtered (H, W, L, 3) float64 illumination out."""
     shape = tuple(np.shape(val))
-    up3 = lambda a: dev.to_device(np.ascontiguousarray(a, np.float64).reshape(-1, 3), dev.Vector3d)  # noqa: E731
-    up1 = lambda a, t: dev.to_device(np.ascontiguousarray(a).reshape(-1), t)  # noqa: E731
-    c, v = up3(col), up1(np.asarray(var, np.float64), dev.Float64)
-    p, n = up3(pos), up3(nrm)
-    valid, d = up1(np.asarray(val, bool), dev.Bool), up1(np.asarray(dep, np.float64), dev.Float64)
-    frags = dev.dr.compress(valid)     # the lanes: the slots that hold a fragment (the numba pass skips the others)
+    flat3 = lambda a: np.ascontiguousarray(a, np.float64).reshape(-1, 3)  # noqa: E731
+    c, p, n = flat3(col), flat3(pos), flat3(nrm)
+    valid = np.asarray(val, bool).reshape(-1)
+    up = lambda a: dev.to_device(a, dev.Float64)  # noqa: E731
+    cv = up(_svgf_rows(c[:, 0], c[:, 1], c[:, 2], np.asarray(var, np.float64).reshape(-1)))
+    pv = up(_svgf_rows(p[:, 0], p[:, 1], p[:, 2], valid.astype(np.float64)))
+    nr = up(_svgf_rows(n[:, 0], n[:, 1], n[:, 2]))
+    d = up(np.ascontiguousarray(dep, np.float64).reshape(-1))
+    frags = dev.dr.compress(dev.to_device(valid, dev.Bool))  # the lanes: the slots that hold a fragment
     for it in range(int(iterations)):
-        c, v = _svgf_pass(dev, shape, frags, c, v, p, n, valid, d, 1 << it, pix_angle, shift_scale, sigma_l,
-                          sigma_n)
-    return dev.to_host(c, np.float64).reshape(shape + (3,))
+        cv = _svgf_pass(dev, shape, frags, cv, pv, nr, d, 1 << it, pix_angle, shift_scale, sigma_l, sigma_n)
+    rows = dev.dr.gather(dev.m.ArrayXf64, cv, dev.arange(len(valid)), shape=(SVGF_ROW, len(valid)))
+    return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64).reshape(shape + (3,))  # colour only
 
 
 # ------------------------------------------------------------------------------------------ packing (§4.1.3-§4.1.5)
