@@ -881,7 +881,7 @@ def _origin_local(dev, position):
     """A camera at ``position`` as every pixel's tracing-frame origin, rounded as the host path rounds it: the
     float32 world point (``camera_rays(dtype=float32)``), then ``float32(float64(o) - shift)`` (``as_rays``). One
     value per coordinate, read from memory (broadcast against the pixels' directions): as literals, every new camera
-    position compiled the PVS, peeling and fragment kernels afresh (20-130 ms each on llvm_ad_rgb)."""
+    position would compile new PVS, peeling and fragment kernels (20-130 ms each on llvm_ad_rgb)."""
     o32 = np.asarray(position, np.float64).astype(np.float32)
     local = (o32.astype(np.float64) - np.asarray(dev.tracer.shift, np.float64)).astype(np.float32)
     return dev.Point3f(*[dev.Float(v) for v in dev.opaques([float(x) for x in local])])  # float32 values: exact

@@ -484,8 +484,8 @@ def test16_the_host_paths_trace_the_same_light_on_embree_and_on_mitsuba(backend)
     # The host path tracer with the same random numbers on embreex and on Mitsuba's numpy interface: the same rays,
     # so the same light but for the backends' parity (a shadow ray or two). arena's walls lie far from the tracing
     # frame's centre in world coordinates (x = 23 against 2 in the frame): an offset origin rounded to float32 in
-    # world coordinates falls back onto its wall, where embreex reports a hit at t = 0 and Mitsuba none, and the
-    # two estimates then differed on about 0.5 % of the fragments (0.2–0.4 % of the mean light).
+    # world coordinates falls back onto its wall, where embreex reports a hit at t = 0 and Mitsuba none, which makes
+    # the two estimates differ on about 0.5 % of the fragments (0.2–0.4 % of the mean light).
     from suite.core.trace.recording import RecordingTracer
     from suite.harness import runner
 
@@ -604,9 +604,9 @@ def test19_the_view_rays_made_on_the_device_give_the_host_layers_and_fragments(b
 @pytest.mark.parametrize("backend", DRJIT)
 def test20_a_new_camera_pose_reuses_the_server_kernels(backend):
     # The server's device passes read the per-update values (camera position, fragment count) from memory, so an
-    # update from another pose launches the kernels the previous one compiled: literals there compiled the PVS,
-    # peeling and fragment kernels afresh for every pose (20-130 ms each on llvm_ad_rgb) and the moments' kernel for
-    # every fragment count.
+    # update from another pose launches the kernels the previous one compiled: literals there would compile the PVS,
+    # peeling and fragment kernels for every pose (20-130 ms each on llvm_ad_rgb) and the moments' kernel for every
+    # fragment count.
     import drjit as dr
 
     from suite.harness import runner

@@ -167,8 +167,8 @@ def test08_light_paths_leave_their_surfaces_on_every_backend(backend):
     # The light paths of §3.2 with the same random numbers on Embree and on a Mitsuba backend's numpy interface
     # hit the same faces. Each bounce leaves its vertex from an origin offset for the tracing frame's float32
     # coordinates; arena's walls lie far from the frame's centre in world coordinates (x = 23 against 2 in the
-    # frame), so an origin rounded to float32 in world coordinates first fell back onto its wall, where embreex
-    # reports a hit at t = 0 (a VPL on the wall the path had just left) and Mitsuba none.
+    # frame), so an origin rounded to float32 in world coordinates first falls back onto its wall, where embreex
+    # reports a hit at t = 0 (a VPL on the wall the path has just left) and Mitsuba none.
     from suite.core.trace.recording import RecordingTracer
 
     scene = load("arena")
