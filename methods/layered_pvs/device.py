@@ -134,8 +134,12 @@ def _svgf_rows(*columns) -> np.ndarray:
     return out.reshape(-1)
 
 
-def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations: int, shift_scale: float = 1.0,
-                sigma_l: float = 4.0, sigma_n: float = 128.0) -> np.ndarray:
+SVGF_PARAMS = (1.0, 4.0, 128.0)  # shift_scale, sigma_l, sigma_n: server._svgf_passes' defaults
+
+
+def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations: int,
+                shift_scale: float = SVGF_PARAMS[0], sigma_l: float = SVGF_PARAMS[1],
+                sigma_n: float = SVGF_PARAMS[2]) -> np.ndarray:
     """:func:`methods.layered_pvs.server._svgf_passes` on ``dev``: (H, W, L[, 3]) float64 grids (bool ``val``) in,
     the filtered (H, W, L, 3) float64 illumination out."""
     shape = tuple(np.shape(val))
@@ -152,6 +156,58 @@ def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations:
         cv = _svgf_pass(dev, shape, frags, cv, pv, nr, d, 1 << it, pix_angle, shift_scale, sigma_l, sigma_n)
     rows = dev.dr.gather(dev.m.ArrayXf64, cv, dev.arange(len(valid)), shape=(SVGF_ROW, len(valid)))
     return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64).reshape(shape + (3,))  # colour only
+
+
+def denoise(dev, layers, frag, illum, var, pix_angle: float, iterations: int) -> np.ndarray:
+    """``server.denoise_fragments`` from fragments ``dev`` made (:func:`twins`): the SVGF's tables are built
+    there from the fragments' positions and normals in place, their illumination and sample variance (uploaded, N
+    values each) and depths, the spatial variance (``server.spatial_variance``: 3x3 luminance moments within the
+    fragment's layer, in the numpy sums' order) included, instead of host grids of every slot going up. Returns the
+    filtered (N, 3) illumination in fragment order, the values of the host grids' path to rounding."""
+    dr, F64, U, I32 = dev.dr, dev.Float64, dev.UInt32, dev.Int32
+    X = dev.m.ArrayXf64
+    L, H, W = layers.prim.shape
+    k, y, x = (np.asarray(a, np.int64) for a in frag.index)
+    n = len(k)
+    size = L * H * W
+    made = twins(frag, dev)
+    c = dev.to_device(np.asarray(illum, np.float64), dev.Vector3d)
+    sv_ = dev.to_device(np.asarray(var, np.float64), F64)
+    t = dev.to_device(np.asarray(layers.t, np.float64)[k, y, x], F64)
+    kk, yy, xx = (dev.to_device(a.astype(np.int32), I32) for a in (k, y, x))
+    L_, H_, W_ = (dev.opaque(I32, v) for v in (L, H, W))
+    slot_layer = U((kk * H_ + yy) * W_ + xx)   # (L, H, W): the spatial variance's grids
+    slot_pixel = U((yy * W_ + xx) * L_ + kk)   # (H, W, L): the SVGF's tables
+    lum = (c.x * 0.2126 + c.y * 0.7152) + c.z * 0.0722
+    grids = [dr.zeros(F64, size) for _ in range(3)]  # lum, lum^2, occupancy (0 where no fragment)
+    for g, value in zip(grids, (lum, lum * lum, dr.full(F64, 1.0, n))):
+        dr.scatter(g, value, slot_layer)
+    dr.eval(*grids)
+    s = [dr.zeros(F64, n) for _ in range(3)]
+    for dy in (-1, 0, 1):  # the 3x3 sums in the order of server.spatial_variance's (dy, dx) loop
+        for dx in (-1, 0, 1):
+            ny, nx = yy + dy, xx + dx
+            inside = (ny >= 0) & (ny < H_) & (nx >= 0) & (nx < W_)
+            j = U((kk * H_ + ny) * W_ + nx)
+            s = [acc + dr.gather(F64, g, j, inside) for acc, g in zip(s, grids)]
+    cnt = dr.maximum(s[2], 1.0)
+    mean = s[0] / cnt
+    spatial = dr.maximum(s[1] / cnt - mean * mean, 0.0)
+    var_g = dr.maximum(spatial, sv_)
+    cv, pv, nr = (dr.zeros(F64, size * SVGF_ROW) for _ in range(3))
+    pos, nrm = made.position, made.normal
+    zero = dr.zeros(F64, n)
+    dr.scatter(cv, X(c.x, c.y, c.z, var_g), slot_pixel)
+    dr.scatter(pv, X(pos.x, pos.y, pos.z, dr.full(F64, 1.0, n)), slot_pixel)
+    dr.scatter(nr, X(nrm.x, nrm.y, nrm.z, zero), slot_pixel)
+    d = dr.zeros(F64, size)
+    dr.scatter(d, t, slot_pixel)
+    dr.eval(cv, pv, nr, d)
+    frags = dr.compress(dr.gather(F64, pv, dev.arange(size) * SVGF_ROW + 3) != 0.0)  # the slots with a fragment
+    for it in range(int(iterations)):
+        cv = _svgf_pass(dev, (H, W, L), frags, cv, pv, nr, d, 1 << it, pix_angle, *SVGF_PARAMS)
+    rows = dr.gather(X, cv, slot_pixel, shape=(SVGF_ROW, n))
+    return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64)
 
 
 # ------------------------------------------------------------------------------------------ packing (§4.1.3-§4.1.5)
@@ -647,10 +703,10 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     if position is None:
         position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
     p = dr.gather(dev.Point3d, position, fi)
-    twins = frag.device  # the normals where the device made the fragments, else uploaded
-    ng = dr.gather(dev.Vector3d, twins.geo_normal if twins is not None else
+    made = twins(frag, dev)  # the normals where this device made the fragments, else uploaded
+    ng = dr.gather(dev.Vector3d, made.geo_normal if made is not None else
                    dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
-    ns = dr.gather(dev.Vector3d, twins.normal if twins is not None else
+    ns = dr.gather(dev.Vector3d, made.normal if made is not None else
                    dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
     thr = dr.full(dev.Vector3d, 1.0, total)
     sample = dr.zeros(dev.Vector3d, total)
@@ -756,8 +812,14 @@ def fragments(dev, layers, origins64: np.ndarray | None, dirs64: np.ndarray | No
         if tables.any_emissive else dr.zeros(dev.Vector3f, n)
     fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission] + ([d] if view_dir is None else [])
     host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32, np.float64])
-    twins = SimpleNamespace(position=hit.position, geo_normal=hit.ng, normal=hit.ns)
+    twins = SimpleNamespace(dev=dev, position=hit.position, geo_normal=hit.ng, normal=hit.ns)
     return Fragments((k, y, x), *host[:5], host[5] if view_dir is None else view_dir, device=twins)
+
+
+def twins(frag, dev):
+    """The fragments' device twins (``Fragments.device``) where ``dev`` made them, else None."""
+    made = getattr(frag, "device", None)
+    return made if made is not None and made.dev is dev else None
 
 
 def fragment_gbuffer(dev, frag):
@@ -769,9 +831,9 @@ def fragment_gbuffer(dev, frag):
     dr = dev.dr
     n = len(frag.position)
     zeros = dr.zeros(dev.Float, n)
-    twins = frag.device
-    if twins is not None:
-        position, normal, geo_normal = twins.position, dev.Vector3f(twins.normal), dev.Vector3f(twins.geo_normal)
+    made = twins(frag, dev)
+    if made is not None:
+        position, normal, geo_normal = made.position, dev.Vector3f(made.normal), dev.Vector3f(made.geo_normal)
     else:
         position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
         normal = dev.to_device(np.asarray(frag.normal, np.float32), dev.Vector3f)

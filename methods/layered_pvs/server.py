@@ -988,13 +988,20 @@ def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m
     """The layered SVGF (§4.4.1) applied to ``path_trace``'s output: per-fragment demodulated illumination
     (N, 3) after ``iterations`` à-trous passes (unchanged with 0 passes or no fragment). With a Dr.Jit ``device``
     (a Mitsuba llvm/cuda tracer's) the passes run as its kernel (:mod:`methods.layered_pvs.device`: the same values
-    to rounding; the grids are counted copies)."""
+    to rounding; the grids are counted copies), and from fragments that device made the kernel's tables are built
+    there (:func:`methods.layered_pvs.device.denoise`: only the fragments' light, variance and depth go up)."""
     if iterations <= 0 or len(frag.position) == 0:
         return np.asarray(illum, np.float64)
     shape = layers.prim.shape
     grid = lambda vals, dim: scatter_fragments(vals, frag.index, shape, dim)  # noqa: E731
     var = np.maximum(m2 - m1 * m1, 0.0) / max(int(spp), 1)
     pix_angle = 2 * math.tan(math.radians(view.fov_deg) / 2) / view.width
+    if device is not None:
+        from methods.layered_pvs import device as layered_device
+
+        if layered_device.twins(frag, device) is not None:  # fragments this device made: the tables built there
+            out = layered_device.denoise(device, layers, frag, illum, var, pix_angle, iterations)
+            return out.astype(np.float32).astype(np.float64)
     var_g = spatial_variance(grid(illum, 3), layers.valid, grid(var, 0))
     # svgf_layers's grids, but the three-channel ones scattered straight into the kernel's (H, W, L) layout rather
     # than transposed from (L, H, W) (about 15 ms an update at 480x270 with 4 layers): the same values.

@@ -2,6 +2,7 @@
 on every Dr.Jit variant (llvm_ad_rgb here, cuda_ad_rgb where a GPU is usable): the SVGF gives the numba kernel's
 values to rounding, the pack stage the host passes' texture, mask and block counts bit for bit, and the server
 takes both on such a tracer."""
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -640,3 +641,33 @@ def test20_a_new_camera_pose_reuses_the_server_kernels(backend):
     known = hashes[0] | hashes[1] | hashes[2]
     for later in hashes[3:]:
         assert later <= known, f"{len(later - known)} kernels compiled for a new pose"
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("scene_name", ["gallery", "living_room"])
+def test21_the_denoiser_builds_its_tables_from_the_device_fragments(backend, scene_name):
+    # Fragments made on the device keep their positions and normals there: the layered SVGF builds its tables from
+    # them (the spatial variance included) and uploads only the fragments' illumination, variance and depth. The
+    # same filtered light as from the host grids, to rounding, with far fewer bytes going up.
+    from methods.layered_pvs.server import denoise_fragments
+
+    scene, tracer, view = _peeling_view(scene_name, backend)
+    layers = sv.peel(tracer, None, None, 3, shape=(45, 80), view=view)
+    frag = sv.fragments(scene, layers, None, None, 0.5, device=tracer.device, view=view)
+    host_frag = dataclasses.replace(frag, device=None)
+    rng = np.random.default_rng(2)
+    n = len(frag.position)
+    illum = rng.random((n, 3)) * np.where(rng.random((n, 1)) < 0.1, 8.0, 1.0)  # a few bright fragments
+    m1 = illum @ np.array([0.2126, 0.7152, 0.0722])
+    m2 = m1 * m1 + rng.random(n) * 0.05
+    dev = tracer.device
+    before = dev.counters["bytes_to_device"]
+    want = denoise_fragments(view, layers, host_frag, illum, m1, m2, 2, 5, device=dev)
+    grids_up = dev.counters["bytes_to_device"] - before
+    before = dev.counters["bytes_to_device"]
+    got = denoise_fragments(view, layers, frag, illum, m1, m2, 2, 5, device=dev)
+    tables_up = dev.counters["bytes_to_device"] - before
+    assert n > 2000 and got.shape == want.shape == (n, 3)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)   # both rounded to float32
+    assert not np.array_equal(got, illum)                         # it filtered
+    assert tables_up < grids_up / 3
