@@ -21,6 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from suite.core.device.context import packet_rows
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
 UNROLL_LIGHTS = 16   # at most this many lights: DeviceLights.unrolled
@@ -126,12 +127,11 @@ def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, 
     return out
 
 
-def _svgf_rows(*columns) -> np.ndarray:
-    """(N,) float64 columns (up to four) as a flat table of rows of :data:`SVGF_ROW`, zero-padded."""
-    out = np.zeros((len(columns[0]), SVGF_ROW))
-    for k, col in enumerate(columns):
-        out[:, k] = col
-    return out.reshape(-1)
+def _colour(dev, cv, index):
+    """The (N, 3) float64 colour of the ``cv`` table's rows ``index`` (UInt32), copied to the host (colour only)."""
+    n = dev.dr.width(index)
+    rows = dev.dr.gather(dev.m.ArrayXf64, cv, index, shape=(SVGF_ROW, n))
+    return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64)
 
 
 SVGF_PARAMS = (1.0, 4.0, 128.0)  # shift_scale, sigma_l, sigma_n: server._svgf_passes' defaults
@@ -146,16 +146,15 @@ def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations:
     flat3 = lambda a: np.ascontiguousarray(a, np.float64).reshape(-1, 3)  # noqa: E731
     c, p, n = flat3(col), flat3(pos), flat3(nrm)
     valid = np.asarray(val, bool).reshape(-1)
-    up = lambda a: dev.to_device(a, dev.Float64)  # noqa: E731
-    cv = up(_svgf_rows(c[:, 0], c[:, 1], c[:, 2], np.asarray(var, np.float64).reshape(-1)))
-    pv = up(_svgf_rows(p[:, 0], p[:, 1], p[:, 2], valid.astype(np.float64)))
-    nr = up(_svgf_rows(n[:, 0], n[:, 1], n[:, 2]))
-    d = up(np.ascontiguousarray(dep, np.float64).reshape(-1))
+    up = lambda columns: dev.to_device(packet_rows(columns, np.float64, SVGF_ROW), dev.Float64)  # noqa: E731
+    cv = up([c, np.asarray(var, np.float64).reshape(-1)])
+    pv = up([p, valid])
+    nr = up([n])
+    d = dev.to_device(np.ascontiguousarray(dep, np.float64).reshape(-1), dev.Float64)
     frags = dev.dr.compress(dev.to_device(valid, dev.Bool))  # the lanes: the slots that hold a fragment
     for it in range(int(iterations)):
         cv = _svgf_pass(dev, shape, frags, cv, pv, nr, d, 1 << it, pix_angle, shift_scale, sigma_l, sigma_n)
-    rows = dev.dr.gather(dev.m.ArrayXf64, cv, dev.arange(len(valid)), shape=(SVGF_ROW, len(valid)))
-    return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64).reshape(shape + (3,))  # colour only
+    return _colour(dev, cv, dev.arange(len(valid))).reshape(shape + (3,))
 
 
 def denoise(dev, layers, frag, illum, var, pix_angle: float, iterations: int) -> np.ndarray:
@@ -206,8 +205,7 @@ def denoise(dev, layers, frag, illum, var, pix_angle: float, iterations: int) ->
     frags = dr.compress(dr.gather(F64, pv, dev.arange(size) * SVGF_ROW + 3) != 0.0)  # the slots with a fragment
     for it in range(int(iterations)):
         cv = _svgf_pass(dev, (H, W, L), frags, cv, pv, nr, d, 1 << it, pix_angle, *SVGF_PARAMS)
-    rows = dr.gather(X, cv, slot_pixel, shape=(SVGF_ROW, n))
-    return dev.to_host(dev.Vector3d(rows[0], rows[1], rows[2]), np.float64)
+    return _colour(dev, cv, slot_pixel)
 
 
 # ------------------------------------------------------------------------------------------ packing (§4.1.3-§4.1.5)
@@ -704,10 +702,12 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
         position = dev.to_device(np.asarray(frag.position, np.float64), dev.Point3d)
     p = dr.gather(dev.Point3d, position, fi)
     made = twins(frag, dev)  # the normals where this device made the fragments, else uploaded
-    ng = dr.gather(dev.Vector3d, made.geo_normal if made is not None else
-                   dev.to_device(np.asarray(frag.geo_normal, np.float64), dev.Vector3d), fi)
-    ns = dr.gather(dev.Vector3d, made.normal if made is not None else
-                   dev.to_device(np.asarray(frag.normal, np.float64), dev.Vector3d), fi)
+    if made is not None:
+        ng_all, ns_all = made.geo_normal, made.normal
+    else:
+        ng_all, ns_all = (dev.to_device(np.asarray(a, np.float64), dev.Vector3d) for a in (frag.geo_normal,
+                                                                                            frag.normal))
+    ng, ns = dr.gather(dev.Vector3d, ng_all, fi), dr.gather(dev.Vector3d, ns_all, fi)
     thr = dr.full(dev.Vector3d, 1.0, total)
     sample = dr.zeros(dev.Vector3d, total)
     live = dr.full(dev.Bool, True, total)

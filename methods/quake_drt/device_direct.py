@@ -25,6 +25,7 @@ import numpy as np
 
 from methods.quake_drt.primary import MAX_OVERLAY_LAYERS
 from methods.quake_drt.rng import DIM_LIGHTS
+from suite.core.device.context import packet_rows
 from suite.core.shading import SHADOW_TMAX_SCALE
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 from suite.core.trace.base import MAX_RAY_LENGTH
@@ -71,22 +72,16 @@ class _Tables:
 
         self.row_lights = dev.to_device(_nonempty(table.row_lights, np.uint32), dev.UInt32)  # every row may be empty
         self.row_cdf = dev.to_device(_nonempty(row_cdf, np.float64), dev.Float64) if mode != "uniform" else None
+        vec3 = lambda a: np.asarray(a, np.float64).reshape(-1, 3)  # noqa: E731
         # one 8-value record per light (position, colour, area, 1 for a point light), read by one packet gather
-        rec = np.zeros((max(1, len(lights.kind)), LIGHT_RECORD), np.float64)
-        if len(lights.kind):
-            rec[:, 0:3] = np.asarray(lights.position, np.float64).reshape(-1, 3)
-            rec[:, 3:6] = np.asarray(lights.rgb, np.float64).reshape(-1, 3)
-            rec[:, 6] = np.asarray(lights.area, np.float64)
-            rec[:, 7] = np.asarray(lights.kind == POINT, np.float64)
-        self.light_rec = dev.to_device(rec.reshape(-1), dev.Float64)
+        self.light_rec = dev.to_device(packet_rows([vec3(lights.position), vec3(lights.rgb), lights.area,
+                                                    lights.kind == POINT], np.float64, LIGHT_RECORD, 1), dev.Float64)
         self.tri_off = dev.to_device(np.asarray(lights.tri_offsets, np.uint32), dev.UInt32)
-        tri = lambda a, w: _nonempty(np.asarray(a, np.float64).reshape(-1, w), np.float64)  # noqa: E731
         # one 16-value record per triangle (p0, e1, e2, normal, padding): a packet gather reads it in a few vector
         # loads where twelve scalar gathers cost a gather instruction each
-        rec = np.zeros((max(1, len(tri(lights.tri_p0, 3))), TRI_RECORD), np.float64)
-        for c, a in enumerate((lights.tri_p0, lights.tri_e1, lights.tri_e2, lights.tri_normal)):
-            rec[:, 3 * c:3 * c + 3] = tri(a, 3)
-        self.tri_rec = dev.to_device(rec.reshape(-1), dev.Float64)
+        self.tri_rec = dev.to_device(packet_rows([vec3(a) for a in (lights.tri_p0, lights.tri_e1, lights.tri_e2,
+                                                                    lights.tri_normal)], np.float64, TRI_RECORD, 1),
+                                     dev.Float64)
         self.tri_cdf = dev.to_device(_nonempty(lights.tri_cdf, np.float64), dev.Float64)
         self.rep_tri = dev.to_device(np.maximum(np.asarray(lights.rep_tri, np.int64), 0).astype(np.uint32), dev.UInt32)
 

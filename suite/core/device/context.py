@@ -546,11 +546,18 @@ class DeviceHits:
 ROW = 4  # values per vertex position, normal and face row on the device (a power of two: one packet gather)
 
 
-def _rows(a, dtype, width: int) -> np.ndarray:
-    """(N, 3) ``a`` as a flat ``dtype`` array of (N, ``width``) rows, zero-padded."""
-    a = np.asarray(a).reshape(-1, 3)
-    out = np.zeros((len(a), width), dtype)
-    out[:, :3] = a
+def packet_rows(columns, dtype, width: int, min_rows: int = 0) -> np.ndarray:
+    """``columns`` ((N,) or (N, k) arrays) side by side as a flat ``dtype`` table of rows of ``width`` values,
+    zero-padded, with at least ``min_rows`` rows (a gather needs a non-empty source): the layout one packet gather
+    (``dr.gather`` of a power-of-two row) reads a row of in a few vector loads."""
+    cols = [np.asarray(c) for c in columns]
+    cols = [c[:, None] if c.ndim == 1 else c for c in cols]
+    n = len(cols[0])
+    out = np.zeros((max(n, min_rows), width), dtype)
+    at = 0
+    for c in cols:
+        out[:n, at:at + c.shape[1]] = c
+        at += c.shape[1]
     return out.reshape(-1)
 
 
@@ -572,10 +579,10 @@ class SceneTables:
         # Vertex positions, normals and faces in rows of four (the fourth unused), UVs in rows of two: a packet gather
         # (Dr.Jit's dr.gather of a power-of-two row) reads a row in a few vector loads where a gather per value
         # costs a gather instruction each.
-        self.vpos = dev.to_device(_rows(positions, np.float32, ROW), F)
-        self.vnrm = dev.to_device(_rows(normals, np.float32, ROW), F)
+        self.vpos = dev.to_device(packet_rows([positions], np.float32, ROW), F)
+        self.vnrm = dev.to_device(packet_rows([normals], np.float32, ROW), F)
         self.vuv = dev.to_device(np.ascontiguousarray(scene.uvs, np.float32).reshape(-1), F)
-        self.faces = dev.to_device(_rows(scene.faces, np.uint32, ROW), U)
+        self.faces = dev.to_device(packet_rows([scene.faces], np.uint32, ROW), U)
         self.face_material = dev.to_device(np.ascontiguousarray(scene.face_material, np.int32), I)
         self.face_object = dev.to_device(np.ascontiguousarray(scene.face_object, np.int32), I)
         mats = scene.materials
@@ -679,11 +686,11 @@ class _TextureTable:
             tex = np.ascontiguousarray(tex, np.float32).reshape(tex.shape[0], tex.shape[1], -1)[:, :, :channels]
             offsets.append(at), widths.append(tex.shape[1]), heights.append(tex.shape[0]), stored.append(tex.shape[2])
             if self.packed:
-                rows = np.zeros((tex.shape[0] * tex.shape[1], ROW), np.float32)
-                for j in range(channels):  # the channel lookup reads for channel j (the first where there is no j)
-                    rows[:, j] = tex.reshape(-1, tex.shape[2])[:, j if tex.shape[2] > j else 0]
-                chunks.append(rows.reshape(-1))
-                at += len(rows)
+                texels = tex.reshape(-1, tex.shape[2])
+                # the channel the lookup reads for channel j (the first where there is no j)
+                chunks.append(packet_rows([texels[:, [j if tex.shape[2] > j else 0 for j in range(channels)]]],
+                                          np.float32, ROW))
+                at += len(texels)
             else:
                 chunks.append(tex.reshape(-1))
                 at += tex.size
