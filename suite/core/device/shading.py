@@ -2,8 +2,9 @@
 
 * :func:`point_light_visibility`: one shadow ray per pixel and point light, generated inside the tracing kernel
   (a loop over the lights per pixel), bit ``l`` of the pixel's record set when light ``l`` is unobstructed. The rays
-  are :mod:`suite.core.trace.raygen`'s operation for operation (robust float64 origin, float64 direction rounded
-  to float32, the horizon test, ``dist * SHADOW_TMAX_SCALE``), so the bits equal the host path's.
+  are :mod:`suite.core.trace.raygen`'s operation for operation (robust float64 origin rounded into the tracing
+  frame, then float32 direction, horizon test and ``dist * SHADOW_TMAX_SCALE`` toward the light's tracing-frame
+  position), so the bits equal the host path's.
 * :func:`shade_point_lights`: :func:`suite.core.shading.shade_point_lights` in float64, reading the bits from a
   :class:`DeviceVisibility` (made here, or uploaded from a received bitmap).
 * :func:`area_light_radiance`: the stratified area-light estimator of :mod:`suite.core.shading` (light chosen by
@@ -131,17 +132,24 @@ def _check(g, tracer=None):
     return g.device
 
 
-def _shadow_ray(dev, o64, n64, valid, light64):
-    """Direction (float32), length and the horizon test of the shadow rays from offset origins ``o64`` to a point
-    light: :mod:`suite.core.trace.raygen`'s ``_rays_kernel`` operation for operation."""
-    dr, F = dev.dr, dev.Float
-    tx, ty, tz = light64.x - o64.x, light64.y - o64.y, light64.z - o64.z
+def _shadow_ray(dev, o_local, n32, valid, light_local):
+    """Direction, length and the horizon test of the shadow rays from tracing-frame origins ``o_local`` to a point
+    light at ``light_local`` (tracing frame), all float32: :mod:`suite.core.trace.raygen`'s ``_rays_kernel``
+    operation for operation."""
+    dr = dev.dr
+    tx, ty, tz = light_local.x - o_local.x, light_local.y - o_local.y, light_local.z - o_local.z
     dist = dr.sqrt(tx * tx + (ty * ty + tz * tz))  # raygen's order
     inv = dr.maximum(dist, 1e-30)
     dx, dy, dz = tx / inv, ty / inv, tz / inv
-    above = valid & (((dx * n64.x + dy * n64.y) + dz * n64.z) > 0.0)
-    length = dr.maximum(F(dist * SHADOW_TMAX_SCALE), 0.0)
-    return dev.Vector3f(F(dx), F(dy), F(dz)), length, above
+    above = valid & (((dx * n32.x + dy * n32.y) + dz * n32.z) > 0.0)
+    length = dr.maximum(dist * SHADOW_TMAX_SCALE, 0.0)
+    return dev.Vector3f(dx, dy, dz), length, above
+
+
+def _light_local(dev, positions):
+    """The lights' tracing-frame positions rounded to float32 (the host's ``ShadowRays.toward``), as float64 values
+    each float32 holds exactly."""
+    return (np.asarray(positions, np.float64).reshape(-1, 3) - dev._shift).astype(np.float32).astype(np.float64)
 
 
 def shadow_rays(g, lights, tracer) -> list:
@@ -149,15 +157,14 @@ def shadow_rays(g, lights, tracer) -> list:
     the light is above and evaluated into device memory: ``[(Ray3f, pixel UInt32)]`` (benchmarks: the raw
     backend's baseline on the very rays of the pass)."""
     dev = _check(g, tracer)
-    dr = dev.dr
-    n64 = dev.Vector3d(g.geo_normal)
-    o64 = dev.offset_origin(g.position, n64)
-    o_local = dev.local_f32(o64)
-    dev.eval(o64, o_local)
+    dr, F = dev.dr, dev.Float
+    o_local = dev.local_f32(dev.offset_origin(g.position, dev.Vector3d(g.geo_normal)))
+    n32 = dev.Vector3f(g.geo_normal)
+    dev.eval(o_local)
     out = []
-    for light in lights:
-        p = dev.Point3d(*[dev.opaque(dev.Float64, float(x)) for x in np.asarray(light.position, np.float64)])
-        d, length, above = _shadow_ray(dev, o64, n64, g.valid, p)
+    for position in _light_local(dev, [light.position for light in lights]):
+        p = dev.Point3f(*[F(dev.opaque(dev.Float64, float(x))) for x in position])
+        d, length, above = _shadow_ray(dev, o_local, n32, g.valid, p)
         idx = dr.compress(above)
         ray = dev.ray(dr.gather(dev.Point3f, o_local, idx), dr.gather(dev.Vector3f, d, idx),
                       dr.gather(dev.Float, length, idx))
@@ -177,9 +184,9 @@ def shadow_rays(g, lights, tracer) -> list:
 # What is left of the gap to raw on llvm_ad_rgb (2 cores, living_room 1080p, 3 lights, 6.05 M shadow rays; raw
 # ray_test of the compacted rays, one kernel per light, 64.4 ms): the same rays precomputed and traced in one kernel
 # for all lights (each packet's rays to light 0, then 1, then 2) 69.5 ms, and in one kernel per light 64.8 ms; so the
-# lights' interleaving costs about 5 ms, and ray generation in the kernel (float64, for the host path's bits) about 8.
-# The pass is 77.7 ms. One kernel per light with its ray generation took 83.9 ms: each kernel reads the G-buffer's
-# positions and normals again.
+# lights' interleaving costs about 5 ms. One kernel per light with its ray generation took 83.9 ms: each kernel reads
+# the G-buffer's positions and normals again. The rays are made in float32 (_shadow_ray): in float64 the pass took
+# about 10 % longer (docs/core.md, "Shadow rays are made in float32").
 UNROLL_LIGHTS = {"llvm": 32, "cuda": 0}
 
 
@@ -197,11 +204,11 @@ def point_light_visibility(g, lights, tracer, unroll: int | None = None) -> Devi
     if n_lights == 0:
         return DeviceVisibility(dev, g.width, g.height, 0, 0, dr.zeros(U, 1), 0)
     unroll = UNROLL_LIGHTS[dev.name] if unroll is None else int(unroll)
-    positions = np.array([lt.position for lt in lights], np.float64)
+    positions = _light_local(dev, [lt.position for lt in lights])
     # the lights' positions (read from memory): scalars where a word's lights are written out, a table where it loops
     written_out = [min(n_lights, 32 * k + 32) - 32 * k <= unroll for k in range(words)]
     light_ops = dev.opaques(positions.reshape(-1)) if any(written_out) else []
-    lp = dev.to_device(positions.reshape(-1), dev.Float64) if not all(written_out) else None
+    lp = dev.to_device(positions.reshape(-1).astype(np.float32), dev.Float) if not all(written_out) else None
     alpha = dev.tracer._alpha is not None
     # recorded once per (pixels, lights, kernel shape) and replayed on later frames (Device.frozen)
     out, count, extra = dev.frozen("visibility", _visibility_kernel, shadow_rays=True)(
@@ -221,9 +228,8 @@ def _visibility_kernel(dev, position, geo_normal, prim, light_ops, lp, n: int, n
     dr, U = dev.dr, dev.UInt32
     words = -(-n_lights // 32)
     valid = prim >= 0
-    n64 = dev.Vector3d(geo_normal)
-    o64 = dev.offset_origin(position, n64)  # once per pixel: the same for every light
-    o_local = dev.local_f32(o64)
+    o_local = dev.local_f32(dev.offset_origin(position, dev.Vector3d(geo_normal)))  # once per pixel
+    n32 = dev.Vector3f(geo_normal)
     data = dr.zeros(U, n * words) if words > 1 else None
     pixel = dev.arange(n)
     count = dr.zeros(U, n)  # shadow rays per pixel (above the horizon)
@@ -231,7 +237,7 @@ def _visibility_kernel(dev, position, geo_normal, prim, light_ops, lp, n: int, n
     word = None
 
     def trace_one(light_pos, bit, word, count, extra):
-        d, length, above = _shadow_ray(dev, o64, n64, valid, light_pos)
+        d, length, above = _shadow_ray(dev, o_local, n32, valid, light_pos)
         blocked, traced = dev.occluded_rays(o_local, d, length, above)
         word = word | dr.select(above & ~blocked, bit, U(0))
         count = count + dr.select(above, U(1), U(0))
@@ -244,14 +250,14 @@ def _visibility_kernel(dev, position, geo_normal, prim, light_ops, lp, n: int, n
         word = dr.zeros(U, n)
         if hi - lo <= unroll:
             for li in range(lo, hi):
-                p = dev.Point3d(*light_ops[3 * li:3 * li + 3])
+                p = dev.Point3f(*[dev.Float(x) for x in light_ops[3 * li:3 * li + 3]])
                 word, count, extra = trace_one(p, dev.opaque(U, 1 << (li - lo)), word, count, extra)
         else:
             base, end = dev.opaque(U, lo), dev.opaque(U, hi)
             light = dr.zeros(U, n) + base
 
             def body(light, word, count, extra):
-                word, count, extra = trace_one(dr.gather(dev.Vector3d, lp, light), U(1) << (light - base), word,
+                word, count, extra = trace_one(dr.gather(dev.Vector3f, lp, light), U(1) << (light - base), word,
                                                count, extra)
                 return light + 1, word, count, extra
 

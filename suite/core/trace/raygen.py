@@ -3,23 +3,23 @@
 Generating a shadow ray is a handful of float operations per pixel and light; in numpy each of them is a pass
 over memory, and ray generation cost more than Embree's tracing of the rays. Two compiled loops write the rays
 straight into the tracer's frame and layout: one offsets the origins once per pixel (they do not depend on the
-light), one makes each light's rays. Per ray they perform exactly the float64/float32 operations of the
-reference formulation (``suite.core.trace.robust.offset_ray_origin``, a float64 direction rounded to float32,
-``dist * tmax_scale``), in the same order, so rays and visibility bits are identical to it
-(tests/methods/visibility_bitmap/test_visibility_pass.py).
+light; float64, ``suite.core.trace.robust.offset_ray_origin``, rounded once into the tracing frame), one makes each
+light's rays in float32 from those origins to the light's tracing-frame position: the segment the backend traces,
+in the precision it traces it (see docs/core.md, "Shadow rays"). The device pass
+(:func:`suite.core.device.shading.point_light_visibility`) performs the same operations in the same order, so
+rays and visibility bits are identical (tests/methods/visibility_bitmap/test_visibility_pass.py,
+tests/core/test_device_shading.py).
 """
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
 from suite.core.trace.robust import FLOAT_SCALE, OFFSET_ULPS
 
 
-def _origins_kernel(positions, normals, pixels, shift, offset_ulps, float_scale, origin64, origin_local, soa):
-    """``offset_ray_origin`` of ``positions[pixels]`` (float64, world) and the same in the tracing frame
-    (float32, minus ``shift``; ``origin_local`` is (3, P) or (P, 3))."""
+def _origins_kernel(positions, normals, pixels, shift, offset_ulps, float_scale, origin_local, normal32, soa):
+    """``offset_ray_origin`` of ``positions[pixels]`` (float64, world) in the tracing frame (float32, minus
+    ``shift``; ``origin_local`` is (3, P) or (P, 3)), and the geometric normals as float32 (``normal32``, (P, 3))."""
     # np.spacing(np.float32(m)) of a normal float32 is its exponent bits with a zero mantissa times 2**-23;
     # below the normal range it is 0 here, and the absolute floor wins anyway.
     m32 = np.empty(1, np.float32)
@@ -35,33 +35,38 @@ def _origins_kernel(positions, normals, pixels, shift, offset_ulps, float_scale,
         ox = px + step * normals[i, 0]
         oy = py + step * normals[i, 1]
         oz = pz + step * normals[i, 2]
-        origin64[j, 0], origin64[j, 1], origin64[j, 2] = ox, oy, oz
         if soa:
             origin_local[0, j], origin_local[1, j], origin_local[2, j] = ox - shift[0], oy - shift[1], oz - shift[2]
         else:
             origin_local[j, 0], origin_local[j, 1], origin_local[j, 2] = ox - shift[0], oy - shift[1], oz - shift[2]
+        normal32[j, 0], normal32[j, 1], normal32[j, 2] = normals[i, 0], normals[i, 1], normals[i, 2]
 
 
-def _rays_kernel(normals, pixels, origin64, origin_local, light, tmax_scale, o_out, d_out, len_out, ray_pixel, soa):
-    """Rays from the offset origins to ``light``, compacted to the pixels whose horizon the light is above.
-    Returns the ray count; ``ray_pixel[k]`` is the pixel (an entry of ``pixels``) of ray k."""
+def _rays_kernel(normal32, pixels, origin_local, light, tmax_scale, o_out, d_out, len_out, ray_pixel, soa):
+    """Rays from the tracing-frame origins to ``light`` (float32, tracing frame), compacted to the pixels whose
+    horizon the light is above, every operation in float32. Returns the ray count; ``ray_pixel[k]`` is the pixel
+    (an entry of ``pixels``) of ray k."""
+    tiny = np.float32(1e-30)
+    zero = np.float32(0.0)
     k = 0
     for j in range(pixels.shape[0]):
-        i = pixels[j]
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-        tx, ty, tz = light[0] - origin64[j, 0], light[1] - origin64[j, 1], light[2] - origin64[j, 2]
-        dist = math.sqrt(tx * tx + (ty * ty + tz * tz))  # np.linalg.norm's order over a length-3 axis
-        inv = max(dist, 1e-30)
-        dx, dy, dz = tx / inv, ty / inv, tz / inv
-        if dx * nx + dy * ny + dz * nz <= 0.0:  # below the horizon: shadowed by the surface itself, no ray
-            continue
         if soa:
-            o_out[0, k], o_out[1, k], o_out[2, k] = origin_local[0, j], origin_local[1, j], origin_local[2, j]
+            ox, oy, oz = origin_local[0, j], origin_local[1, j], origin_local[2, j]
         else:
-            o_out[k, 0], o_out[k, 1], o_out[k, 2] = origin_local[j, 0], origin_local[j, 1], origin_local[j, 2]
+            ox, oy, oz = origin_local[j, 0], origin_local[j, 1], origin_local[j, 2]
+        tx, ty, tz = light[0] - ox, light[1] - oy, light[2] - oz
+        dist = np.sqrt(tx * tx + (ty * ty + tz * tz))  # np.linalg.norm's order over a length-3 axis
+        inv = max(dist, tiny)
+        dx, dy, dz = tx / inv, ty / inv, tz / inv
+        if (dx * normal32[j, 0] + dy * normal32[j, 1]) + dz * normal32[j, 2] <= zero:
+            continue  # below the horizon: shadowed by the surface itself, no ray
+        if soa:
+            o_out[0, k], o_out[1, k], o_out[2, k] = ox, oy, oz
+        else:
+            o_out[k, 0], o_out[k, 1], o_out[k, 2] = ox, oy, oz
         d_out[k, 0], d_out[k, 1], d_out[k, 2] = dx, dy, dz
-        len_out[k] = max(np.float32(dist * tmax_scale), np.float32(0.0))
-        ray_pixel[k] = i
+        len_out[k] = max(dist * tmax_scale, zero)
+        ray_pixel[k] = pixels[j]
         k += 1
     return k
 
@@ -93,11 +98,11 @@ class ShadowRays:
         self.soa = soa
         self.positions, self.normals = positions, normals
         self.pixels = np.ascontiguousarray(pixels, np.int64)
-        self.origin64 = np.empty((n, 3), np.float64)
         self.origin_local = np.empty((3, n) if soa else (n, 3), np.float32)
-        shift = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
-        origins(positions, normals, self.pixels, shift, float(OFFSET_ULPS), float(FLOAT_SCALE), self.origin64,
-                self.origin_local, soa)
+        self.normal32 = np.empty((n, 3), np.float32)
+        self.shift = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
+        origins(positions, normals, self.pixels, self.shift, float(OFFSET_ULPS), float(FLOAT_SCALE),
+                self.origin_local, self.normal32, soa)
         self.buffers = [(np.empty((3, n) if soa else (n, 3), np.float32), np.empty((n, 3), np.float32),
                          np.empty(n, np.float32), np.empty(n, np.int64)) for _ in range(max(int(slots), 1))]
 
@@ -105,6 +110,7 @@ class ShadowRays:
         """(o, d, length, pixel) of the rays toward one light; views into the reused buffers of ``slot``."""
         _, rays = _jit()
         o, d, length, pixel = self.buffers[slot]
-        count = int(rays(self.normals, self.pixels, self.origin64, self.origin_local,
-                         np.asarray(light_position, np.float64), float(tmax_scale), o, d, length, pixel, self.soa))
+        light = (np.asarray(light_position, np.float64) - self.shift).astype(np.float32)  # the tracing frame
+        count = int(rays(self.normal32, self.pixels, self.origin_local, light, np.float32(tmax_scale), o, d, length,
+                         pixel, self.soa))
         return (o[:, :count] if self.soa else o[:count]), d[:count], length[:count], pixel[:count]

@@ -11,24 +11,28 @@ from suite.core.trace.robust import offset_ray_origin
 
 
 def straightforward_visibility(g, lights, tracer):
-    """The specification: per pixel and light, the offset origin, the unit direction and the distance to the
-    light in float64 over (P, L, 3) arrays, the horizon test, one occluded query."""
+    """The specification: per pixel and light, the offset origin (float64) rounded once into the tracing frame, and
+    from it the unit direction and the distance to the light's tracing-frame position in float32 over (P, L, 3)
+    arrays, the horizon test against the geometric normal, one occluded query."""
     h, w = g.depth.shape
     vis = np.zeros((h * w, len(lights)), bool)
     idx = np.nonzero(g.valid.reshape(-1))[0]
     if len(lights) == 0 or len(idx) == 0:
         return vis.reshape(h, w, len(lights))
-    ng = g.geo_normal.reshape(-1, 3)[idx].astype(np.float64)
-    origin = offset_ray_origin(g.position.reshape(-1, 3)[idx], ng, getattr(tracer, "shift", None))
-    light_pos = np.stack([lt.position for lt in lights]).astype(np.float64)
-    to_light = light_pos[None, :, :] - origin[:, None, :]
-    dist = np.linalg.norm(to_light, axis=-1)
-    d = to_light / np.maximum(dist, 1e-30)[..., None]
-    above = np.einsum("plc,pc->pl", d, ng) > 0
+    shift = np.zeros(3) if getattr(tracer, "shift", None) is None else np.asarray(tracer.shift, np.float64)
+    ng = g.geo_normal.reshape(-1, 3)[idx].astype(np.float32)
+    origin = offset_ray_origin(g.position.reshape(-1, 3)[idx], ng.astype(np.float64), getattr(tracer, "shift", None))
+    o_local = (origin - shift).astype(np.float32)
+    light_local = (np.stack([lt.position for lt in lights]).astype(np.float64) - shift).astype(np.float32)
+    t = light_local[None, :, :] - o_local[:, None, :]
+    dist = np.sqrt(t[..., 0] * t[..., 0] + (t[..., 1] * t[..., 1] + t[..., 2] * t[..., 2]))
+    d = t / np.maximum(dist, np.float32(1e-30))[..., None]
+    cos = (d[..., 0] * ng[:, None, 0] + d[..., 1] * ng[:, None, 1]) + d[..., 2] * ng[:, None, 2]
+    above = cos > 0
+    assert d.dtype == dist.dtype == cos.dtype == np.float32
     sel = above.reshape(-1)
     o = np.broadcast_to(origin[:, None, :], d.shape).reshape(-1, 3)[sel]
-    occ = tracer.occluded(o, d.reshape(-1, 3)[sel].astype(np.float32), 0.0,
-                          (dist.reshape(-1)[sel] * SHADOW_TMAX_SCALE).astype(np.float32))
+    occ = tracer.occluded(o, d.reshape(-1, 3)[sel], 0.0, dist.reshape(-1)[sel] * np.float32(SHADOW_TMAX_SCALE))
     flat = np.zeros(above.size, bool)
     flat[sel] = ~occ
     vis[idx] = flat.reshape(above.shape)
@@ -181,3 +185,72 @@ def test07_device_packing_matches_pack_for_every_layout_and_light_count(backend,
         assert got.shape == (11, 20, lights_used)
         assert np.array_equal(raw.to_host(), bm.pack(got, layout))
         assert raw.nbytes == bm.bitmap_nbytes(20, 11, lights_used, layout)
+
+
+def _float32_segments(p, n, light, shift):
+    """The rays of the specification (straightforward_visibility) from points ``p`` to one light: (origin, direction,
+    length) in the tracing frame, float32, of the points above the light's horizon."""
+    shift = np.zeros(3) if shift is None else np.asarray(shift, np.float64)
+    o = (offset_ray_origin(p, n, shift) - shift).astype(np.float32)
+    t = (np.asarray(light, np.float64) - shift).astype(np.float32) - o
+    dist = np.sqrt(t[:, 0] * t[:, 0] + (t[:, 1] * t[:, 1] + t[:, 2] * t[:, 2]))
+    d = t / np.maximum(dist, np.float32(1e-30))[:, None]
+    n32 = n.astype(np.float32)
+    above = (d[:, 0] * n32[:, 0] + d[:, 1] * n32[:, 1]) + d[:, 2] * n32[:, 2] > 0
+    return o[above], d[above], (dist * np.float32(SHADOW_TMAX_SCALE))[above], np.flatnonzero(above)
+
+
+def test08_compiled_shadow_rays_are_float32_segments_from_the_rounded_origin_to_the_rounded_light():
+    """Direction and length are computed in float32 from the origin as the backend traces it (offset in float64,
+    rounded once into the tracing frame) to the light's rounded tracing-frame position: the traced segment in the
+    precision it is traced in, the same bits in both layouts, near the origin and far from it."""
+    from suite.core.trace.raygen import ShadowRays
+
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-20.0, 20.0, (4000, 3))
+    n = rng.standard_normal((4000, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    pixels = np.arange(len(p), dtype=np.int64)
+    for shift in (None, np.array([1e4, -3.0, 0.25])):
+        for light in ([0.3, 7.7, -1.1], [123.456, -0.001, 5e3]):
+            world = np.asarray(light) + (0.0 if shift is None else shift)
+            o, d, length, idx = _float32_segments(p + (0.0 if shift is None else shift), n, world, shift)
+            assert 0 < len(idx) < len(p)  # lights below some horizons
+            for soa in (False, True):
+                go, gd, glen, gpix = ShadowRays(p + (0.0 if shift is None else shift), n, pixels, shift,
+                                                soa).toward(world, SHADOW_TMAX_SCALE)
+                assert np.array_equal(gpix, idx)
+                assert np.array_equal(go.T if soa else go, o)
+                assert np.array_equal(gd, d) and np.array_equal(glen, length)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("name, shift", [("living_room", (1e4, 1e4, 1e4)), ("arena", None)])
+def test09_device_shadow_rays_equal_the_compiled_host_rays(backend, name, shift):
+    """The rays the device pass traces (:func:`suite.core.device.shading.shadow_rays`, compacted per light) are the
+    host's :class:`~suite.core.trace.raygen.ShadowRays`, bit for bit on llvm_ad_rgb."""
+    from suite.core.device.shading import shadow_rays
+    from suite.core.gbuffer import render_gbuffer_device
+    from suite.core.scene import load
+    from suite.core.trace import make
+    from suite.core.trace.raygen import ShadowRays
+
+    scene = load(name)
+    if shift is not None:
+        scene = scene.translated(shift)
+    tracer = make(backend, scene)
+    dg = render_gbuffer_device(scene, tracer, 0.5, (64, 36))
+    g = dg.to_host()
+    dev = tracer.device
+    lights = scene.lights_at(0.5)
+    pixels = np.flatnonzero(g.valid.reshape(-1))
+    host = ShadowRays(g.position.reshape(-1, 3).astype(np.float64), g.geo_normal.reshape(-1, 3).astype(np.float64),
+                      pixels, tracer.shift)
+    for light, (ray, idx) in zip(lights, shadow_rays(dg, lights, tracer)):
+        o, d, length, pixel = host.toward(light.position, SHADOW_TMAX_SCALE)
+        assert len(pixel) > 0 and np.array_equal(dev.to_host(idx), pixel)
+        got = [dev.to_host(ray.o), dev.to_host(ray.d), dev.to_host(ray.maxt)]
+        if backend == "mitsuba-llvm":
+            assert np.array_equal(got[0], o) and np.array_equal(got[1], d) and np.array_equal(got[2], length)
+        else:
+            np.testing.assert_allclose(got[1], d, atol=1e-6)
