@@ -987,9 +987,10 @@ def denoise_fragments(view: LayerView, layers: Layers, frag: Fragments, illum, m
                       iterations: int, device=None) -> np.ndarray:
     """The layered SVGF (§4.4.1) applied to ``path_trace``'s output: per-fragment demodulated illumination
     (N, 3) after ``iterations`` à-trous passes (unchanged with 0 passes or no fragment). With a Dr.Jit ``device``
-    (a Mitsuba llvm/cuda tracer's) the passes run as its kernel (:mod:`methods.layered_pvs.device`: the same values
-    to rounding; the grids are counted copies), and from fragments that device made the kernel's tables are built
-    there (:func:`methods.layered_pvs.device.denoise`: only the fragments' light, variance and depth go up)."""
+    (a Mitsuba llvm/cuda tracer's) the passes run as its kernel (:mod:`methods.layered_pvs.device`, in float32: the
+    same values to float32 rounding; the grids are counted copies), and from fragments that device made the kernel's
+    tables are built there (:func:`methods.layered_pvs.device.denoise`: only the fragments' light, variance and depth
+    go up)."""
     if iterations <= 0 or len(frag.position) == 0:
         return np.asarray(illum, np.float64)
     shape = layers.prim.shape

@@ -51,10 +51,11 @@ def test01_the_device_passes_give_the_numba_kernels_values(drjit_device, backend
     want = sv._svgf_passes(*grids, pix_angle, iterations, sigma_n=sigma_n)
     got = svgf_passes(drjit_device(backend), *grids, pix_angle, iterations, sigma_n=sigma_n)
     assert got.shape == want.shape and got.dtype == np.float64
+    # the device passes run in float32, the numba kernel in float64: float32 rounding (relative 1e-5 at most here)
     if backend == "mitsuba-llvm":
-        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
     else:  # cuda's fused multiply-adds can tip a tap's choice between two nearly equidistant fragments
-        at_parity(got, want, share=0.999, rtol=1e-9, atol=1e-12)
+        at_parity(got, want, share=0.999, rtol=1e-4, atol=1e-6)
     v = sv.pixel_major(valid, np.bool_)
     assert (got[~v] == 0).all() and not np.allclose(got[v], grids[0][v], rtol=1e-3)
 
@@ -74,8 +75,8 @@ def test02_denoise_fragments_on_a_device_counts_its_copies(drjit_device, backend
     want = sv.denoise_fragments(view, layers, frag, illum, m1, m2, spp=2, iterations=3)
     before = dev.counters["bytes_to_host"]
     got = sv.denoise_fragments(view, layers, frag, illum, m1, m2, spp=2, iterations=3, device=dev)
-    assert dev.counters["bytes_to_host"] - before == valid.size * 3 * 8      # the filtered grid, once
-    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)              # both rounded to float32
+    assert dev.counters["bytes_to_host"] - before == valid.size * 3 * 4      # the filtered grid, once (float32)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)              # float32 passes against float64
 
 
 # ------------------------------------------------------------------------------------------ packing on the device
@@ -644,11 +645,13 @@ def test20_a_new_camera_pose_reuses_the_server_kernels(backend):
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-@pytest.mark.parametrize("scene_name", ["gallery", "living_room"])
+@pytest.mark.parametrize("scene_name", ["gallery", "living_room", "far:living_room"])
 def test21_the_denoiser_builds_its_tables_from_the_device_fragments(backend, scene_name):
     # Fragments made on the device keep their positions and normals there: the layered SVGF builds its tables from
     # them (the spatial variance included) and uploads only the fragments' illumination, variance and depth. The
-    # same filtered light as from the host grids, to rounding, with far fewer bytes going up.
+    # same filtered light as from the host grids, to rounding, with far fewer bytes going up; and, its passes in
+    # float32, the float64 numba passes' light to float32 rounding, also with the scene 1e4 away from the origin
+    # (positions relative to a fragment's keep the plane distances' precision).
     from methods.layered_pvs.server import denoise_fragments
 
     scene, tracer, view = _peeling_view(scene_name, backend)
@@ -668,6 +671,8 @@ def test21_the_denoiser_builds_its_tables_from_the_device_fragments(backend, sce
     got = denoise_fragments(view, layers, frag, illum, m1, m2, 2, 5, device=dev)
     tables_up = dev.counters["bytes_to_device"] - before
     assert n > 2000 and got.shape == want.shape == (n, 3)
-    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)   # both rounded to float32
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)   # both float32, positions relative to other points
     assert not np.array_equal(got, illum)                         # it filtered
     assert tables_up < grids_up / 3
+    numba = denoise_fragments(view, layers, host_frag, illum, m1, m2, 2, 5)
+    np.testing.assert_allclose(got, numba, rtol=1e-4, atol=1e-6)
