@@ -1,8 +1,9 @@
 """The à-trous filter and the bilateral spatial variance as Dr.Jit kernels (suite/core/device/denoise.py): the
 values of the host filters (suite/core/denoise.py) on every Dr.Jit variant, llvm_ad_rgb here and cuda_ad_rgb where a
-GPU is usable. The two paths do the same float operations in the same order; Dr.Jit's ``exp`` (and ``pow`` for a
-fractional normal exponent) is its own, so they agree to rounding: float32 results within a few units in the last
-place."""
+GPU is usable. The two paths do the same operations in the same order; the device's à-trous passes run in float32
+(the host's weights and sums are float64) and Dr.Jit's ``exp`` (and ``pow`` for a fractional normal exponent) is its
+own, so they agree to float32 rounding: the spatial variance within a few units in the last place, the à-trous
+passes within 1e-5 relative."""
 import numpy as np
 import pytest
 
@@ -32,6 +33,11 @@ def _close(a, b):
     np.testing.assert_allclose(a, b, rtol=2e-6, atol=1e-7)
 
 
+def _close32(a, b):
+    """The float32 passes against the host's float64 weights and sums."""
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("radius, phi_normal, iterations, feedback",
                          [(1, 128.0, 5, 1), (2, 17.5, 3, 2), (1, 0.0, 7, 0)])
@@ -43,11 +49,11 @@ def test01_device_atrous_gives_the_host_filter(drjit_device, backend, radius, ph
     ref_c, ref_v, ref_tap = denoise.atrous(c, v, z, n, valid, s, feedback)
     out_c, out_v, out_tap = dden.atrous_arrays(drjit_device(backend), c, v, z, n, valid, s, feedback)
     assert out_c.dtype == np.float32 and out_c.shape == ref_c.shape
-    _close(out_c, ref_c)
-    _close(out_v, ref_v)
+    _close32(out_c, ref_c)
+    _close32(out_v, ref_v)
     assert (out_tap is None) == (ref_tap is None)
     if ref_tap is not None:
-        _close(out_tap, ref_tap)
+        _close32(out_tap, ref_tap)
     assert np.array_equal(out_c[~valid], c[~valid])                  # pixels without a surface pass through
     assert not np.allclose(out_c[valid], c[valid])                   # and the others were filtered
 
@@ -60,8 +66,8 @@ def test02_images_smaller_than_the_kernel(drjit_device, backend, h, w):
     s = denoise.AtrousSettings(iterations=3, radius=2)
     ref_c, ref_v, _ = denoise.atrous(c, v, z, n, valid, s)
     out_c, out_v, _ = dden.atrous_arrays(drjit_device(backend), c, v, z, n, valid, s)
-    _close(out_c, ref_c)
-    _close(out_v, ref_v)
+    _close32(out_c, ref_c)
+    _close32(out_v, ref_v)
 
 
 @pytest.mark.parametrize("backend", DRJIT)
