@@ -388,8 +388,7 @@ class Pipeline:
             t = self.taa
             self._taa_dev = DeviceTAA(device, t.alpha, t.clamp_sigma, t.firefly_sigma)
             if t.history is not None:
-                h, w = t.history.shape[:2]
-                self._taa_dev.history = (device.to_device(t.history.reshape(-1, 3), device.Vector3d), w, h)
+                self._taa_dev.set_history(t.history)
         return self._taa_dev
 
     # -- ground truth and audit (outside the timed stages) ----------------------------------------------------
