@@ -25,7 +25,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from suite.core.device.context import packet_rows
+from suite.core.device.context import packet_rows, read_rows
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
 UNROLL_LIGHTS = 16   # at most this many lights: DeviceLights.unrolled
@@ -48,7 +48,7 @@ def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, 
     size = dr.width(frags)
 
     def row(table, index, active=True):
-        return dr.gather(X, table, index, active, shape=(SVGF_ROW, size))
+        return read_rows(dev, table, index, SVGF_ROW, active)
 
     pix = frags // L
     y, x = I32(pix // W), I32(pix % W)
@@ -135,8 +135,7 @@ def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, 
 def _colour(dev, cv, index):
     """The (N, 3) colour of the ``cv`` table's rows ``index`` (UInt32), copied to the host (colour only, float32
     values as float64)."""
-    n = dev.dr.width(index)
-    rows = dev.dr.gather(dev.m.ArrayXf, cv, index, shape=(SVGF_ROW, n))
+    rows = read_rows(dev, cv, index, SVGF_ROW)
     return dev.to_host(dev.Vector3f(rows[0], rows[1], rows[2]), np.float32).astype(np.float64)
 
 

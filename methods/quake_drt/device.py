@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from suite.core.device.denoise import PixelGrid, _read, _rows
+from suite.core.device.context import float_rows, read_rows
+from suite.core.device.denoise import PixelGrid
 
 
 def _pixels(dev, w: int, h: int):
@@ -57,14 +58,15 @@ class DeviceTAA:
         out = taa_pass(dev, c, self.history[0] if has else c, m, w, h, has, self.alpha, self.clamp_sigma,
                        self.firefly_sigma)
         self.history = (out, w, h)
-        r = _read(dev, out, dev.arange(w * h))
+        r = read_rows(dev, out, dev.arange(w * h), 4)
         return dev.to_host(dev.Vector3f(r[0], r[1], r[2]), np.float32).reshape(h, w, 3)
 
 
 def _colour_rows(dev, rgb: np.ndarray):
-    """(N, 3) colours uploaded as float32 (a counted copy) and laid out as rows of four (:func:`_rows`)."""
+    """(N, 3) colours uploaded as float32 (a counted copy) and laid out as rows of four
+    (:func:`~suite.core.device.context.float_rows`)."""
     c = dev.to_device(np.asarray(rgb, np.float32), dev.Vector3f)
-    return _rows(dev, c.x, c.y, c.z, dev.dr.zeros(dev.Float, dev.dr.width(c)))
+    return float_rows(dev, c.x, c.y, c.z, dev.dr.zeros(dev.Float, dev.dr.width(c)))
 
 
 def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: float, clamp_sigma: float,
@@ -77,7 +79,7 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
     dr, F, F64, I32 = dev.dr, dev.Float, dev.Float64, dev.Int32
     y, x = _pixels(dev, w, h)
     n = w * h
-    me = _read(dev, c, dev.arange(n))
+    me = read_rows(dev, c, dev.arange(n), 4)
     cen = [F64(me[k]) for k in range(3)]
     m1, m2 = [dr.zeros(F64, n) for _ in range(3)], [dr.zeros(F64, n) for _ in range(3)]
     for dy in (-1, 0, 1):
@@ -85,7 +87,7 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
         for dx in (-1, 0, 1):
             if dx == 0 and dy == 0:
                 continue
-            q = _read(dev, c, _index(dev, yy, dr.clip(x + dx, 0, w - 1), w))
+            q = read_rows(dev, c, _index(dev, yy, dr.clip(x + dx, 0, w - 1), w), 4)
             for k in range(3):
                 qk = F64(q[k])
                 m1[k], m2[k] = m1[k] + qk, m2[k] + qk * qk
@@ -96,7 +98,7 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
         fire = fire | (cen[k] < m1[k] - firefly_sigma * sig) | (cen[k] > m1[k] + firefly_sigma * sig)
     centre = [dr.select(fire, m1[k], cen[k]) for k in range(3)]
     if not has_history:
-        out = _rows(dev, *[F(v) for v in centre], dr.zeros(F, n))
+        out = float_rows(dev, *[F(v) for v in centre], dr.zeros(F, n))
         dr.eval(out)
         return out
     bx, by = motion
@@ -119,7 +121,7 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
         for i in range(4):
             xi = dr.clip(xi0 + (i - 1), 0, w - 1)
             wgt = wx[i] * wy[j]
-            q = _read(dev, hist, _index(dev, yi, xi, w), usable)
+            q = read_rows(dev, hist, _index(dev, yi, xi, w), 4, usable)
             prev = [prev[k] + q[k] * wgt for k in range(3)]
     out = []
     for k in range(3):
@@ -129,7 +131,7 @@ def taa_pass(dev, c, hist, motion, w: int, h: int, has_history: bool, alpha: flo
         p = F64(dr.select(dr.isfinite(prev[k]), prev[k], 0.0))
         p = dr.minimum(dr.maximum(p, mean - clamp_sigma * sd), mean + clamp_sigma * sd)
         out.append(F(dr.select(usable, p + alpha * (centre[k] - p), centre[k])))
-    res = _rows(dev, *out, dr.zeros(F, n))
+    res = float_rows(dev, *out, dr.zeros(F, n))
     dr.eval(res)
     return res
 

@@ -561,6 +561,22 @@ def packet_rows(columns, dtype, width: int, min_rows: int = 0) -> np.ndarray:
     return out.reshape(-1)
 
 
+def float_rows(dev, *columns):
+    """Float arrays of one size side by side as a flat Float table of rows of ``len(columns)`` values (a power of
+    two), made on the device: :func:`packet_rows`' layout for values already there (one packet scatter)."""
+    dr = dev.dr
+    n = dr.width(columns[0])
+    out = dr.zeros(dev.Float, len(columns) * n)
+    dr.scatter(out, dev.m.ArrayXf(*columns), dev.arange(n))
+    return out
+
+
+def read_rows(dev, table, index, width: int, active=True) -> list:
+    """Rows ``index`` (UInt32 per lane) of a flat Float table of rows of ``width`` values (:func:`float_rows`), by
+    one packet gather: ``width`` Float arrays."""
+    return dev.dr.gather(dev.m.ArrayXf, table, index, active, shape=(width, dev.dr.width(index)))
+
+
 class SceneTables:
     """The scene's per-vertex, per-face and per-material data on the device, as the G-buffer and the alpha test read
     them: world vertex positions and shading normals at the tracer's time (float32, moving vertices updated on

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from suite.core.denoise import AtrousSettings, _whole, kernel
+from suite.core.device.context import float_rows, read_rows
 
 
 @dataclass
@@ -117,21 +118,6 @@ def depth_fwidth(frame: DeviceFrame, grid: PixelGrid | None = None):
 ROW = 4  # float32 values per pixel in the à-trous passes' tables (a power of two: one packet gather)
 
 
-def _rows(dev, *columns):
-    """Flat Float table of rows of four: ``columns`` (Float arrays of the image's size) side by side, one packet
-    gather per pixel read."""
-    dr = dev.dr
-    n = dr.width(columns[0])
-    out = dr.zeros(dev.Float, ROW * n)
-    dr.scatter(out, dev.m.ArrayXf(*columns), dev.arange(n))
-    return out
-
-
-def _read(dev, table, index, active=True):
-    """The row ``index`` of a :func:`_rows` table: four Float arrays."""
-    return dev.dr.gather(dev.m.ArrayXf, table, index, active, shape=(ROW, dev.dr.width(index)))
-
-
 def _gaussian3x3(dev, grid: PixelGrid, cv):
     """:func:`suite.core.denoise.gaussian3x3` of the variance (the fourth value of ``cv``'s rows), row-major tap
     order, zero outside the image, float32."""
@@ -148,10 +134,10 @@ def _lum32(c):
 
 
 def atrous_pass(frame: DeviceFrame, cv, guide, fw, step: int, s: AtrousSettings, grid: PixelGrid | None = None):
-    """One pass with tap spacing ``step`` on tables of rows of four (:func:`_rows`): ``cv`` (colour, variance) in,
-    the filtered ``cv`` out, evaluated; ``guide``: (normal, depth) rows of the frame. ``fw``: max(|grad z|, 1e-8) as
-    :func:`atrous` computes it. The host pass's operations in its order, in float32 (module docstring). The step is
-    read from memory, so every pass runs the same kernel."""
+    """One pass with tap spacing ``step`` on tables of rows of four (:func:`~suite.core.device.context.float_rows`):
+    ``cv`` (colour, variance) in, the filtered ``cv`` out, evaluated; ``guide``: (normal, depth) rows of the frame.
+    ``fw``: max(|grad z|, 1e-8) as :func:`atrous` computes it. The host pass's operations in its order, in float32
+    (module docstring). The step is read from memory, so every pass runs the same kernel."""
     dev = frame.device
     dr, F = dev.dr, dev.Float
     grid = grid or PixelGrid(dev, frame.width, frame.height)
@@ -163,8 +149,8 @@ def atrous_pass(frame: DeviceFrame, cv, guide, fw, step: int, s: AtrousSettings,
     k00 = kern[0] * kern[0]
     valid = frame.valid
     me = dev.arange(size)
-    c = _read(dev, cv, me)
-    n = _read(dev, guide, me)
+    c = read_rows(dev, cv, me, ROW)
+    n = read_rows(dev, guide, me, ROW)
     z = n[3]
     g = _gaussian3x3(dev, grid, cv)
     g = dr.select(g < 0.0, 0.0, g)  # the host's clamp: NaN stays NaN
@@ -175,8 +161,8 @@ def atrous_pass(frame: DeviceFrame, cv, guide, fw, step: int, s: AtrousSettings,
     va = c[3] * (k00 * k00)
     ws = dr.full(F, k00, size)
     for dy, dx, q, inside in grid.window(r, step_i, centre=False):
-        cq = _read(dev, cv, q, inside)
-        nq = _read(dev, guide, q, inside)
+        cq = read_rows(dev, cv, q, ROW, inside)
+        nq = read_rows(dev, guide, q, ROW, inside)
         tap = inside & valid & dr.gather(dev.Bool, valid, q, inside)
         wl = dr.abs(lum - _lum32(cq)) / phi_l
         wz = dr.abs(z - nq[3]) / (depth_scale * math.sqrt(float(dx * dx + dy * dy)))
@@ -187,14 +173,14 @@ def atrous_pass(frame: DeviceFrame, cv, guide, fw, step: int, s: AtrousSettings,
         a = [dr.select(inside, a[k] + cq[k] * wq, a[k]) for k in range(3)]
         va = dr.select(inside, va + cq[3] * wq * wq, va)
         ws = dr.select(inside, ws + wq, ws)
-    out = _rows(dev, a[0] / ws, a[1] / ws, a[2] / ws, va / (ws * ws))
+    out = float_rows(dev, a[0] / ws, a[1] / ws, a[2] / ws, va / (ws * ws))
     dr.eval(out)
     return out
 
 
 def _unpack(dev, cv):
-    """(colour Vector3f, variance Float) of a :func:`_rows` table."""
-    r = _read(dev, cv, dev.arange(dev.dr.width(cv) // ROW))
+    """(colour Vector3f, variance Float) of a :func:`~suite.core.device.context.float_rows` table."""
+    r = read_rows(dev, cv, dev.arange(dev.dr.width(cv) // ROW), ROW)
     return dev.Vector3f(r[0], r[1], r[2]), r[3]
 
 
@@ -205,9 +191,9 @@ def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = Atrou
     grid = PixelGrid(dev, frame.width, frame.height)
     fw = dev.dr.maximum(depth_fwidth(frame, grid), 1e-8)
     c = dev.Vector3f(color)
-    cv = _rows(dev, c.x, c.y, c.z, dev.Float(variance))
+    cv = float_rows(dev, c.x, c.y, c.z, dev.Float(variance))
     nrm = frame.normal
-    guide = _rows(dev, nrm.x, nrm.y, nrm.z, frame.depth)
+    guide = float_rows(dev, nrm.x, nrm.y, nrm.z, frame.depth)
     dev.dr.eval(fw, guide)
     tapped = None
     for it in range(int(settings.iterations)):
