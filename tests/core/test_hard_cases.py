@@ -130,3 +130,26 @@ def test07_many_lights_visibility_matches_one_light_at_a_time():
     single = np.stack([point_light_visibility(g, [lt], tracer)[..., 0] for lt in lights], axis=-1)
     np.testing.assert_array_equal(batched, single)
     assert 0 < batched.mean() < 0.5  # walls occlude most lights from most pixels
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test08_very_far_point_lights_give_finite_results(backend, grazing_plane_scene):
+    # Shadow rays are made in float32 in the tracing frame (docs/core.md). A light 1e15 m above the floor lights
+    # it; one 1e20 m away overflows the float32 squared distance: its rays are not traced and its bits are 0, which
+    # its float64 contribution (below 1e-40 of its intensity) is anyway. Host and device passes agree on both.
+    from suite.core.device import point_light_visibility as device_visibility
+    from suite.core.gbuffer import render_gbuffer_device
+
+    scene = grazing_plane_scene
+    scene.point_lights = [PointLight("far", [0.0, 1e15, 0.0], [1e30] * 3),
+                          PointLight("beyond", [0.0, 1e20, 0.0], [1e30] * 3)]
+    tracer = make(backend, scene)
+    g = render_gbuffer(scene, tracer, 0.0, (48, 32))
+    vis = point_light_visibility(g, scene.point_lights, tracer)
+    assert g.valid.mean() > 0.5
+    assert vis[g.valid, 0].all() and not vis[..., 1].any()
+    rgb = shade_point_lights(g, scene.point_lights, vis)
+    assert np.isfinite(rgb).all() and rgb[g.valid].min() > 0
+    if getattr(tracer, "device", None) is not None:
+        dg = render_gbuffer_device(scene, tracer, 0.0, (48, 32))
+        assert np.array_equal(device_visibility(dg, scene.point_lights, tracer).to_host(), vis)
