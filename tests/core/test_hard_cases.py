@@ -5,7 +5,7 @@ import pytest
 
 from suite.core.gbuffer import render_gbuffer
 from suite.core.scene import load
-from suite.core.scene.model import Material, PointLight
+from suite.core.scene.model import PointLight
 from suite.core.shading import direct_lighting, point_light_visibility, shade_point_lights
 from suite.core.trace import backend_params, make
 
