@@ -152,4 +152,6 @@ def test08_very_far_point_lights_give_finite_results(backend, grazing_plane_scen
     assert np.isfinite(rgb).all() and rgb[g.valid].min() > 0
     if getattr(tracer, "device", None) is not None:
         dg = render_gbuffer_device(scene, tracer, 0.0, (48, 32))
-        assert np.array_equal(device_visibility(dg, scene.point_lights, tracer).to_host(), vis)
+        dvis = device_visibility(dg, scene.point_lights, tracer).to_host()
+        assert not dvis[..., 1].any()
+        assert np.mean(dvis == vis) >= (1.0 if backend == "mitsuba-llvm" else 0.999)

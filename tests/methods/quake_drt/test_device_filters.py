@@ -62,7 +62,9 @@ def test02_device_taa_gives_the_host_taa_with_its_history_on_the_device(drjit_de
         motion[:3] = 40.0                                       # history outside the image
         a, b = host(c, motion), dev(c, motion)
         assert b.dtype == np.float32 and b.shape == a.shape
-        np.testing.assert_allclose(b, a, rtol=1e-6, atol=1e-7)
+        # the history's float32 sum: within 1e-6 here; fused multiply-adds on cuda round it otherwise
+        tol = (1e-6, 1e-7) if backend == "mitsuba-llvm" else (1e-5, 1e-6)
+        np.testing.assert_allclose(b, a, rtol=tol[0], atol=tol[1])
     assert not np.allclose(a, c)                                # the history was blended in
 
 
