@@ -137,6 +137,10 @@ def trace_light_paths(scene, tracer, t_s: float, light_positions, light_intensit
         nrm = area_lights.normal[k]
         origin[tri] = offset_ray_origin(p, nrm, getattr(tracer, "shift", None))
         direction[tri] = cosine_directions(nrm, u[tri, 0], u[tri, 1])
+    # Every bounce's two random numbers of every path, drawn up front: a path's numbers depend on its index and
+    # bounce only, so a ray that hits elsewhere (backends differ at their parity) changes that path alone, and the
+    # generator leaves this call in the same state whatever the paths hit.
+    u_bounce = rng.random((max(int(max_bounces), 0), n_paths, 2))
     positions = scene.positions_at(t_s)
     normals = scene.normals_at(t_s)
     out = []
@@ -159,7 +163,7 @@ def trace_light_paths(scene, tracer, t_s: float, light_positions, light_intensit
         out.append(PathVertices(p, ng, albedo, flux, np.full(len(p), bounce, np.int32), prim.astype(np.int32)))
         flux = flux * albedo
         keep = flux.max(axis=-1) > 0
-        u2 = rng.random((len(p), 2))
+        u2 = u_bounce[bounce - 1, alive]
         origin = offset_ray_origin(p, ng, getattr(tracer, "shift", None))[keep]
         direction = cosine_directions(ng[keep], u2[keep, 0], u2[keep, 1])
         flux, alive = flux[keep], alive[keep]
