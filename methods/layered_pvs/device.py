@@ -188,7 +188,7 @@ def denoise(dev, layers, frag, illum, var, pix_angle: float, iterations: int) ->
     # the passes are float32: the light, variance and depth go up as float32 (the spatial variance's sums in float64)
     c = dev.Vector3d(dev.to_device(np.asarray(illum, np.float32), dev.Vector3f))
     sv_ = dev.to_device(np.asarray(var, np.float32), dev.Float)
-    t = dev.to_device(np.asarray(layers.t, np.float32)[k, y, x], dev.Float)
+    t = dev.to_device(np.asarray(layers.t)[k, y, x].astype(np.float32), dev.Float)
     kk, yy, xx = (dev.to_device(a.astype(np.int32), I32) for a in (k, y, x))
     L_, H_, W_ = (dev.opaque(I32, v) for v in (L, H, W))
     slot_layer = U((kk * H_ + yy) * W_ + xx)   # (L, H, W): the spatial variance's grids

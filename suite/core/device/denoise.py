@@ -187,6 +187,8 @@ def _unpack(dev, cv):
 def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = AtrousSettings(), feedback_tap: int = 0):
     """:func:`suite.core.denoise.atrous` on the device: ``settings.iterations`` passes with steps 1, 2, 4, ...;
     (filtered colour Vector3f, filtered variance Float, the colour after pass ``feedback_tap`` or None)."""
+    if int(settings.iterations) <= 0:
+        return color, variance, None
     dev = frame.device
     grid = PixelGrid(dev, frame.width, frame.height)
     fw = dev.dr.maximum(depth_fwidth(frame, grid), 1e-8)
@@ -200,8 +202,6 @@ def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = Atrou
         cv = atrous_pass(frame, cv, guide, fw, 1 << it, settings, grid)
         if feedback_tap == it + 1:
             tapped = _unpack(dev, cv)[0]
-    if int(settings.iterations) <= 0:
-        return color, variance, tapped
     c, v = _unpack(dev, cv)
     dev.dr.eval(c, v, *([tapped] if tapped is not None else []))
     return c, v, tapped

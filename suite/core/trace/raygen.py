@@ -7,8 +7,8 @@ light; float64, ``suite.core.trace.robust.offset_ray_origin``, rounded once into
 light's rays in float32 from those origins to the light's tracing-frame position: the segment the backend traces,
 in the precision it traces it (see docs/core.md, "Shadow rays"). The device pass
 (:func:`suite.core.device.shading.point_light_visibility`) performs the same operations in the same order, so
-rays and visibility bits are identical (tests/methods/visibility_bitmap/test_visibility_pass.py,
-tests/core/test_device_shading.py).
+rays and visibility bits are identical (tests/methods/visibility_bitmap/test_visibility_pass.py test08 and
+test09, tests/core/test_device.py).
 """
 from __future__ import annotations
 
@@ -96,7 +96,6 @@ class ShadowRays:
         origins, _ = _jit()
         n = len(pixels)
         self.soa = soa
-        self.positions, self.normals = positions, normals
         self.pixels = np.ascontiguousarray(pixels, np.int64)
         self.origin_local = np.empty((3, n) if soa else (n, 3), np.float32)
         self.normal32 = np.empty((n, 3), np.float32)
