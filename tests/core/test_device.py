@@ -401,3 +401,26 @@ def test14_area_lights_recording_their_rays_give_the_same_image(backend, at_pari
     assert len(rays) == 4 and {kind for kind, _ in rays} == {"o"}
     widths = sum(tracer.device.dr.width(ray.d) for _, ray in rays)
     assert widths == tracer.counters["rays_occluded"] - before > 0
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("share", [0.0, 0.003, 0.3, 1.0])
+def test15_where_any_gives_the_function_in_its_lanes_and_the_fallback_elsewhere(backend, share):
+    """``where_any(mask, fn, *otherwise)`` equals ``select(mask, fn(mask), otherwise)`` lane for lane, whatever share
+    of the lanes (none, a few scattered ones, many, all) the mask holds; the function reads the mask it is given."""
+    scene = load("cornell")
+    dev = make(backend, scene).device
+    dr = dev.dr
+    rng = np.random.default_rng(11)
+    n = 1000
+    mask_np = rng.random(n) < share
+    x_np = rng.random(n).astype(np.float32)
+    mask, x = dev.to_device(mask_np, dev.Bool), dev.to_device(x_np, dev.Float)
+
+    def fn(m):
+        return dr.select(m, x * 2.0 + 1.0, -5.0), dev.UInt32(m)
+
+    y, count = dev.where_any(mask, fn, dr.full(dev.Float, 7.0, n), dr.zeros(dev.UInt32, n))
+    dev.eval(y, count)
+    assert np.array_equal(dev.to_host(y, np.float32), np.where(mask_np, x_np * np.float32(2) + np.float32(1), 7))
+    assert np.array_equal(dev.to_host(count, np.int64), mask_np.astype(np.int64))

@@ -429,9 +429,29 @@ class Device:
         by_opaque = dr.zeros(self.Bool, dr.width(d)) if opaque.mscene is None else \
             opaque.mscene.ray_test(ray, coherent=False, active=active) & active
         walk = active & ~by_opaque & self.crosses_box(o_local, d, length, alpha.box)
-        t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
-        _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
-        return by_opaque | (walk & (prim >= 0)), traced
+
+        def walk_alpha(walk):
+            t, prim, u, v = self.closest_backend(o_local, d, length, walk, alpha)
+            _, prim, _, _, traced = self._skip_transparent(o_local, d, length, t, prim, u, v, walk, alpha)
+            return walk & (prim >= 0), traced
+
+        n = dr.width(d)
+        by_alpha, traced = self.where_any(walk, walk_alpha, dr.zeros(self.Bool, n), dr.zeros(self.UInt32, n))
+        return by_opaque | by_alpha, traced
+
+    def where_any(self, mask, fn, *otherwise):
+        """``fn(mask)``'s values (a tuple) in the lanes of ``mask`` and ``otherwise`` elsewhere, with ``fn`` run only in
+        the packets that have a lane in ``mask``: a symbolic loop of at most one iteration, whose condition a packet
+        without such a lane fails at once. On ``llvm_ad_rgb`` a backend query costs a call per packet (SIMD group of
+        lanes) even with every lane masked off; inside a kernel over all lanes this skips those calls for a query that
+        few lanes make (the alpha-tested faces' walk of the shadow rays that cross their box)."""
+        dr = self.dr
+
+        def body(todo, *values):
+            return (dr.zeros(self.Bool, dr.width(todo)), *fn(todo))
+
+        _, *out = dr.while_loop((self.Bool(mask), *otherwise), lambda todo, *values: todo, body)
+        return tuple(out)
 
     def crosses_box(self, o_local, d, length, box):
         """Bool: the segments o + t d, 0 <= t <= length (padded), cross ``box`` ((2, 3) float64 [lo, hi], padded): the
@@ -475,26 +495,27 @@ class Device:
             length = dr.clip(F(tmax) - tmin_f, 0.0, float(MAX_RAY_LENGTH))
         return o_local, d, length, tmin_f, tmin_is_zero
 
+    def _query(self, name: str, kernel, shadow_rays: bool):
+        """:meth:`occluded`'s or :meth:`intersect`'s kernel function: recorded and replayed (:meth:`frozen`) where the
+        scene has alpha-tested materials. Their walk's symbolic loops and texture lookups make a graph whose tracing
+        in Python costs about half a millisecond a call, more than a replay's bookkeeping (a tenth of one, which is
+        more than tracing the few operations of a query without the walk)."""
+        return kernel if self.tracer._alpha is None else self.frozen(name, kernel, shadow_rays)
+
     def occluded(self, o, d, tmin=0.0, tmax=np.inf):
         """Device-resident ``occluded``: world-space Dr.Jit rays in, evaluated Dr.Jit Bool out (counted)."""
-        o_local, d, length, _, _ = self._rays_in_frame(o, d, tmin, tmax)
-        blocked, traced = self.occluded_rays(o_local, d, length)
-        n = self.dr.width(d)
-        self.eval(blocked) if traced is None else self.eval(blocked, traced)
-        self.tracer.counters["rays_occluded"] += n
+        blocked, traced = self._query("occluded", _occluded_kernel, True)(self, o, d, tmin, tmax)
+        self.dr.sync_thread()  # evaluated and waited for, as raw_occluded
+        self.tracer.counters["rays_occluded"] += self.dr.width(blocked)
         if traced is not None:
             self.tracer.counters["rays_intersect"] += self.sum_u32(traced, MAX_ALPHA_LAYERS + 1)
         return blocked
 
     def intersect(self, o, d, tmin=0.0, tmax=np.inf):
         """Device-resident ``intersect``: world-space Dr.Jit rays in, evaluated ``DeviceHits`` out (counted)."""
-        dr = self.dr
-        o_local, d, length, tmin_f, tmin_is_zero = self._rays_in_frame(o, d, tmin, tmax)
-        t, prim, u, v, traced = self.closest(o_local, d, length)
-        if not tmin_is_zero:
-            t = t + tmin_f
-        self.eval(t, prim, u, v) if traced is None else self.eval(t, prim, u, v, traced)
-        n = dr.width(d)
+        t, prim, u, v, traced = self._query("intersect", _intersect_kernel, False)(self, o, d, tmin, tmax)
+        self.dr.sync_thread()
+        n = self.dr.width(t)
         self.tracer.counters["rays_intersect"] += n if traced is None else self.sum_u32(traced, MAX_ALPHA_LAYERS + 1)
         return DeviceHits(t, prim, u, v)
 
@@ -533,6 +554,24 @@ class Device:
         pi = self.tracer.mscene.ray_intersect_preliminary(ray, coherent=False)
         self.eval(pi.t, pi.prim_index, pi.prim_uv, pi.shape)
         return pi
+
+
+def _occluded_kernel(dev, o, d, tmin, tmax):
+    """:meth:`Device.occluded`'s kernel: (blocked, closest-hit queries per lane or None), evaluated."""
+    o_local, d, length, _, _ = dev._rays_in_frame(o, d, tmin, tmax)
+    blocked, traced = dev.occluded_rays(o_local, d, length)
+    dev.dr.eval(blocked) if traced is None else dev.dr.eval(blocked, traced)
+    return blocked, traced
+
+
+def _intersect_kernel(dev, o, d, tmin, tmax):
+    """:meth:`Device.intersect`'s kernel: (t, prim, u, v, backend queries per lane or None), evaluated."""
+    o_local, d, length, tmin_f, tmin_is_zero = dev._rays_in_frame(o, d, tmin, tmax)
+    t, prim, u, v, traced = dev.closest(o_local, d, length)
+    if not tmin_is_zero:
+        t = t + tmin_f
+    dev.dr.eval(t, prim, u, v) if traced is None else dev.dr.eval(t, prim, u, v, traced)
+    return t, prim, u, v, traced
 
 
 @dataclass
