@@ -16,8 +16,10 @@ from __future__ import annotations
 import sys
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 
+from suite.core import tea
 from suite.core.trace.robust import offset_ray_origin
 
 INV_PI = 1.0 / np.pi
@@ -177,17 +179,49 @@ class AreaLights:
         return int((self.pmf > 0).sum())
 
 
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dot products over the last axis of 3-vectors, summed (x + y) + z (a fixed order, no fused multiply-add)."""
+    return (a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]) + a[..., 2] * b[..., 2]
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _area_numbers(pixels, samples: int, seed: int):
+    """The area-light estimator's random numbers of ``pixels`` (flat image indices): per pixel and sample k, the
+    stratum its light choice takes (Kensler's permutation of [0, samples) keyed by TEA of (pixel, seed), at k) and
+    three float32 numbers in [0, 1) (TEA of (pixel, seed * 0x632BE5AB + 4 k + j)), widened to float64:
+    ``(strata (m, samples) float64, xi (m, samples, 3) float64)``."""
+    m = len(pixels)
+    stratum = np.empty((m, samples), np.float64)
+    xi = np.empty((m, samples, 3), np.float64)
+    seed_u = np.uint32(seed)
+    perm_key = np.uint32(np.uint32(seed_u * np.uint32(2654435761)) + np.uint32(0x9E3779B9))
+    base = np.uint32(seed_u * np.uint32(0x632BE5AB))
+    for i in numba.prange(m):
+        key = np.uint32(pixels[i])
+        perm_seed = tea.tea_u32(key, perm_key)
+        for k in range(samples):
+            stratum[i, k] = np.float64(tea.permute_kensler(np.uint32(k), samples, perm_seed))
+            ctr = np.uint32(base + np.uint32(4 * k))
+            for j in range(3):
+                xi[i, k, j] = np.float64(tea.tea_float32(key, np.uint32(ctr + np.uint32(j))))
+    return stratum, xi
+
+
 def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, seed: int = 0,
                         min_distance: float = 0.0, chunk_pixels: int = 1 << 16) -> np.ndarray:
     """Soft-shadowed direct light from triangle area lights, ``samples`` stratified samples per pixel.
 
-    Sample k of n picks a light with the stratified number (k + xi)/n through the power CDF and a point on it
-    with a jittered sqrt(n) x sqrt(n) grid over the unit square (warped to the triangle), which lowers the
-    variance against independent sampling without bias.
+    Sample k of n picks a light with the stratified number (s + xi)/n through the power CDF, where s is the pixel's
+    random permutation of the strata taken at k (decorrelating the light choice from the 2-D stratum), and a point
+    on it with a jittered sqrt(n) x sqrt(n) grid over the unit square (warped to the triangle), which lowers the
+    variance against independent sampling without bias. The random numbers are counter-based, a function of (pixel,
+    seed, sample, dimension) (:func:`_area_numbers`): the device estimator's
+    (:func:`suite.core.device.shading.area_light_radiance`), so the two take the same samples and their images agree
+    to rounding (up to shadow rays that graze an occluder).
     """
     from suite.core.device.gbuffer import DeviceGBuffer
 
-    if isinstance(g, DeviceGBuffer):  # the device estimator (its own random numbers): a DeviceImage
+    if isinstance(g, DeviceGBuffer):  # the device estimator (the same samples): a DeviceImage
         from suite.core.device import shading as dshade
 
         return dshade.area_light_radiance(g, area_lights, tracer, samples, seed, min_distance)
@@ -196,7 +230,6 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
     idx = np.nonzero(g.valid.reshape(-1))[0]
     if len(area_lights) == 0 or len(idx) == 0 or samples <= 0:
         return out.reshape(h, w, 3).astype(np.float32)
-    rng = np.random.default_rng(seed)
     side = max(int(np.ceil(np.sqrt(samples))), 1)
     strata = np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2)
     strata = strata[np.linspace(0, len(strata) - 1, samples).round().astype(int)]
@@ -206,11 +239,11 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
     for c0 in range(0, len(idx), chunk_pixels):
         pix = idx[c0:c0 + chunk_pixels]
         m = len(pix)
-        xi_sel = (np.arange(samples)[None, :] + rng.random((m, samples))) / samples
-        rng.permuted(xi_sel, axis=1, out=xi_sel)  # decorrelate light choice from the 2-D stratum
+        stratum, xi = _area_numbers(pix.astype(np.uint32), samples, int(seed) & 0xFFFFFFFF)
+        xi_sel = (stratum + xi[..., 0]) * (1.0 / samples)
         light = np.minimum(np.searchsorted(area_lights.cdf, xi_sel * area_lights.cdf[-1], side="right"),
                            len(area_lights.cdf) - 1)
-        uv = (strata[None, :, :] + rng.random((m, samples, 2))) / side
+        uv = (strata[None, :, :] + xi[..., 1:]) * (1.0 / side)
         su = np.sqrt(uv[..., 0])
         b1, b2 = 1.0 - su, uv[..., 1] * su  # uniform point on the triangle
         y = area_lights.p0[light] + b1[..., None] * area_lights.e1[light] + b2[..., None] * area_lights.e2[light]
@@ -219,11 +252,12 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
         origin = offset_ray_origin(np.broadcast_to(positions[pix][:, None, :], y.shape), np.broadcast_to(geo[pix][:, None, :], y.shape),
                                    getattr(tracer, "shift", None))
         to_y = y - x
-        dist2 = np.maximum(np.einsum("psc,psc->ps", to_y, to_y), min_distance ** 2)
+        # dot products summed (x + y) + z, as the device estimator does (same samples, same rounding)
+        dist2 = np.maximum(_dot3(to_y, to_y), min_distance ** 2)
         dist = np.sqrt(dist2)
         wdir = to_y / dist[..., None]
-        cos_x = np.einsum("psc,pc->ps", wdir, normals[pix].astype(np.float64))
-        cos_y = -np.einsum("psc,psc->ps", wdir, ny)
+        cos_x = _dot3(wdir, normals[pix].astype(np.float64)[:, None, :])
+        cos_y = -_dot3(wdir, ny)
         active = (cos_x > 0) & (cos_y > 0)
         pdf_area = area_lights.pmf[light] / np.maximum(area_lights.area[light], 1e-300)
         weight = np.where(active, cos_x * cos_y / dist2 / np.maximum(pdf_area, 1e-300), 0.0)
@@ -231,14 +265,17 @@ def area_light_radiance(g, area_lights: AreaLights, tracer, samples: int = 16, s
         if sel.any():
             o = origin.reshape(-1, 3)[sel]
             seg = (y.reshape(-1, 3)[sel] - o.astype(np.float64))
-            seg_len = np.linalg.norm(seg, axis=-1)
+            seg_len = np.sqrt(_dot3(seg, seg))
             d = (seg / np.maximum(seg_len, 1e-30)[:, None]).astype(np.float32)
             occ = tracer.occluded(o, d, 0.0, (seg_len * SHADOW_TMAX_SCALE).astype(np.float32))
             vis = np.zeros(m * samples, bool)
             vis[np.nonzero(sel)[0]] = ~occ
             weight = weight * vis.reshape(m, samples)
-        contrib = (weight[..., None] * area_lights.radiance[light]).sum(axis=1) / samples
-        out[pix] = contrib
+        # the samples summed in order, then scaled by 1 / n (the device's loop)
+        contrib = np.zeros((m, 3))
+        for k in range(samples):
+            contrib += weight[:, k, None] * area_lights.radiance[light[:, k]]
+        out[pix] = contrib * (1.0 / samples)
     out *= g.albedo.reshape(-1, 3).astype(np.float64) * INV_PI
     return out.reshape(h, w, 3).astype(np.float32)
 
@@ -249,9 +286,9 @@ def direct_lighting(scene, g, tracer, t_s: float, area_samples: int = 16, seed: 
 
     A tracer with a device path computes it with :func:`suite.core.device.direct_lighting` (for a host G-buffer: on
     its device twin, or an upload of it) and, for a host G-buffer, copies the image back; given a DeviceGBuffer it
-    returns the :class:`~suite.core.device.DeviceImage`. Point-light terms equal the host path's; the area-light
-    samples come from another random generator, so that term agrees within noise. ``device=False`` forces the
-    host path for a host G-buffer.
+    returns the :class:`~suite.core.device.DeviceImage`. Point-light terms equal the host path's, and so do the
+    area-light terms on the same G-buffer (the same counter-based samples, :func:`area_light_radiance`).
+    ``device=False`` forces the host path for a host G-buffer.
     """
     dg = _device_gbuffer(g, tracer) if device is not False else None
     if dg is not None:

@@ -127,22 +127,54 @@ def test04_device_shading_equals_the_host_shading(backend):
 
 
 @pytest.mark.parametrize("backend", DRJIT)
-def test05_device_area_lights_agree_with_the_host_estimator_within_noise(backend):
-    """Different random numbers, the same expectation: per-pixel z-scores over 6 seeds each, and the means."""
-    from suite.core.device import direct_lighting, render_gbuffer
+@pytest.mark.parametrize("name", ["cornell", "gallery", "atrium"])
+def test05_device_area_lights_take_the_host_estimators_samples(backend, name, at_parity):
+    """The same counter-based random numbers (suite.core.tea) and the same operations: on the same G-buffer and
+    backend the device image equals the host estimator's bit for bit on llvm_ad_rgb (at parity on cuda_ad_rgb), for
+    seed and number of samples, with alpha-tested occluders (gallery) and many lights (atrium); another seed gives
+    another image."""
+    from suite.core.device import render_gbuffer
 
-    scene = load("cornell")
+    scene = load(name)
     tracer = make(backend, scene)
-    g = host_gbuffer.render_gbuffer(scene, tracer, 0.0, (40, 40), device=False)
     dg = render_gbuffer(scene, tracer, 0.0, (40, 40))
-    host = np.array([host_shading.direct_lighting(scene, g, tracer, 0.0, 16, seed=s, device=False) for s in range(6)])
-    dev = np.array([direct_lighting(scene, dg, tracer, 0.0, 16, seed=s).to_host() for s in range(6)])
-    se = np.sqrt(host.var(0, ddof=1) / 6 + dev.var(0, ddof=1) / 6 + 1e-12)
-    z = (host.mean(0) - dev.mean(0)) / se
-    assert np.mean(np.abs(z) > 5) < 0.005
-    assert abs(dev.mean() / host.mean() - 1) < 0.01
-    assert not np.array_equal(dev[0], dev[1])  # seeds matter
-    assert 0.7 < dev.std(0).mean() / host.std(0).mean() < 1.4  # as well stratified as the host estimator
+    g = dg.to_host()
+    area = host_shading.AreaLights(scene, 0.0)
+    images = []
+    for seed, samples in ((0, 16), (5, 7)):  # a square number of samples and not
+        host = host_shading.area_light_radiance(g, area, tracer, samples, seed=seed)
+        dev = host_shading.area_light_radiance(dg, area, tracer, samples, seed=seed).to_host()
+        assert host.max() > 0
+        if exact(backend):
+            assert np.array_equal(dev, host)
+        else:
+            at_parity(dev, host, share=0.99, rtol=1e-4, atol=1e-6)
+        images.append(dev)
+    assert not np.array_equal(images[0], images[1])
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("name", ["gallery", "atrium"])
+def test05b_embree_and_device_area_lights_agree_to_rounding_not_within_noise(backend, name):
+    """Embree's host estimator and the device's take the same samples: the images differ only where the backends'
+    barycentrics differ in the last bits (interpolated normals, texels) or a shadow ray grazes an occluder, so the
+    mean relative difference is at rounding level and almost every pixel agrees to 1e-3 (independent random
+    numbers at 16 samples differ by several per cent per pixel)."""
+    from suite.core.device import render_gbuffer
+
+    scene = load(name)
+    area = host_shading.AreaLights(scene, 0.0)
+    embree = make("embree", scene)
+    host = host_shading.area_light_radiance(host_gbuffer.render_gbuffer(scene, embree, 0.0, (64, 36)), area, embree,
+                                            16, seed=2).astype(np.float64)
+    tracer = make(backend, scene)
+    dev = host_shading.area_light_radiance(render_gbuffer(scene, tracer, 0.0, (64, 36)), area, tracer, 16,
+                                           seed=2).to_host().astype(np.float64)
+    lit = host.max(axis=-1) > 1e-4
+    rel = (np.abs(dev - host).max(axis=-1) / np.maximum(host.max(axis=-1), 1e-12))[lit]
+    assert lit.mean() > 0.3
+    assert rel.mean() < 1e-4
+    assert (rel > 1e-3).mean() < 0.005
 
 
 @pytest.mark.parametrize("backend", DRJIT)

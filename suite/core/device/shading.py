@@ -8,8 +8,9 @@
 * :func:`shade_point_lights`: :func:`suite.core.shading.shade_point_lights` in float64, reading the bits from a
   :class:`DeviceVisibility` (made here, or uploaded from a received bitmap).
 * :func:`area_light_radiance`: the stratified area-light estimator of :mod:`suite.core.shading` (light chosen by
-  power with a stratified number, a jittered sqrt(n) x sqrt(n) grid on the triangle). Its random numbers come from a
-  counter-based generator (TEA) instead of numpy's, so the image differs from the host's within noise.
+  power with a stratified number, a jittered sqrt(n) x sqrt(n) grid on the triangle) with the host estimator's
+  counter-based random numbers (TEA and Kensler's permutation, whose host twins are :mod:`suite.core.tea`) and its
+  operations in its order: on the same G-buffer the image is the host's bit for bit on ``llvm_ad_rgb``.
 * :func:`direct_lighting`: emission + point lights + area lights.
 
 Visibility records use the byte layout of the visibility bitmap (:mod:`methods.visibility_bitmap.bitmap`): light
@@ -25,6 +26,7 @@ import numpy as np
 
 from suite.core.shading import INV_PI, SHADOW_TMAX_SCALE, AreaLights, compose_direct
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
+from suite.core.device.gbuffer import _dot
 
 
 @dataclass
@@ -400,16 +402,17 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
         ny = dr.gather(dev.Vector3d, lt.normal, light)
         y = (p0 + b1 * e1) + b2 * e2
         to_y = y - x
-        dist2 = dr.maximum(dr.squared_norm(to_y), min_d2)
+        # dot products summed (x + y) + z, as the host estimator does (dr.dot would fuse multiply-adds)
+        dist2 = dr.maximum(_dot(to_y, to_y), min_d2)
         dist = dr.sqrt(dist2)
         wdir = to_y / dist
-        cos_x = dr.dot(wdir, ns)
-        cos_y = -dr.dot(wdir, ny)
+        cos_x = _dot(wdir, ns)
+        cos_y = -_dot(wdir, ny)
         active = g.valid & (cos_x > 0.0) & (cos_y > 0.0)
         pdf = dr.gather(F64, lt.pdf_area, light)
         weight = cos_x * cos_y / dist2 / dr.maximum(pdf, 1e-300)
         seg = y - o64
-        seg_len = dr.norm(seg)
+        seg_len = dr.sqrt(_dot(seg, seg))
         d = dev.Vector3f(seg / dr.maximum(seg_len, 1e-30))
         length = F(seg_len * SHADOW_TMAX_SCALE)
         blocked, traced = dev.occluded_rays(o_local, d, length, active)
