@@ -25,7 +25,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from suite.core.device import rng as device_rng
 from suite.core.device.context import packet_rows, read_rows
+from suite.core.rng import dim_hashes, pcg_np
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 
 UNROLL_LIGHTS = 16   # at most this many lights: DeviceLights.unrolled
@@ -696,8 +698,10 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     """The indirect part of the layered path tracer (``server.path_trace``, §4.4) on the device: ``spp`` paths per
     fragment (lane ``k * n + i`` is sample ``k`` of fragment ``i``), cosine-weighted Lambertian bounces, Russian
     roulette from vertex ``rr_depth`` on, and next-event estimation towards one light at every later vertex (chosen
-    as ``LightSampler`` chooses it). The same estimator as the host passes (:mod:`methods.layered_pvs.kernels`), with
-    counter-based random numbers (TEA, keyed by lane and draw) instead of numpy's, so the two agree within noise.
+    as ``LightSampler`` chooses it). The same estimator and the same counter-based random numbers as the host passes
+    (:mod:`methods.layered_pvs.kernels`; the PCG hash of lane and draw, ``server._path_numbers``), so the two agree to
+    rounding path by path (the bounce direction is made in float32 here; a last-bit difference rarely sends a path
+    elsewhere).
 
     Returns the (n * spp) float64 path contributions (Vector3d, evaluated: demodulated, the primary fragment's albedo
     left out, its direct light not included); the fragments go up once (``position``: their positions already on
@@ -709,7 +713,7 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     from suite.core.trace.base import MAX_RAY_LENGTH
 
     dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
-    m, tracer = dev.m, dev.tracer
+    tracer = dev.tracer
     n = len(frag.position)
     total = n * int(spp)
     if total == 0 or max_depth < 3 or len(lights.power) == 0:
@@ -732,20 +736,20 @@ def path_samples(dev, frag, lights, spp: int, max_depth: int, rr_depth: int, see
     live = dr.full(dev.Bool, True, total)
     closest_rays = dr.zeros(U, total)   # closest-hit queries per lane (the alpha walk's included)
     shadow_rays = dr.zeros(U, total)
-    key = U(lane)
-    seed_u = dev.opaque(U, int(seed) & 0xFFFFFFFF)
+    # the host passes' numbers (server._path_numbers): the PCG hash of (lane, seed) and the draw's dimension
+    key = device_rng.lane_keys(dev, lane, dev.opaque(U, int(pcg_np(int(seed) & 0xFFFFFFFF))))
     length = dr.full(F, float(MAX_RAY_LENGTH), total)
     one, zero = U(1), U(0)
     depth = 1
     while depth + 1 < max_depth:
-        ctr = seed_u * 0x632BE5AB + U(depth * 8)
-        u = [m.sample_tea_float32(key, ctr + k, 8) for k in range(6)]
+        dims = dim_hashes(8 * depth + np.arange(6))
+        u = [device_rng.uniform(dev, key, dev.opaque(U, int(h))) for h in dims]
         # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
         if depth >= rr_depth:
             q = dr.minimum(dr.maximum(dr.maximum(thr.x, thr.y), thr.z), 0.95)
             live = live & (F64(u[0]) < q)
             thr = thr / dr.maximum(q, 1e-12)
-        d32 = _cosine_hemisphere(dev, ns, u[1], u[2])
+        d32 = _cosine_hemisphere(dev, ns, F(u[1]), F(u[2]))  # 24-bit numbers: exact in float32
         d64 = dev.Vector3d(d32)
         queried = live & (dr.dot(d64, ng) > 0.0)
         o64 = dev.offset_origin(p, ng)

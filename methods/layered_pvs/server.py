@@ -20,6 +20,7 @@ import numpy as np
 from suite.core import shading
 from suite.core.gbuffer import camera_rays, surface_attributes
 from suite.core.pipeline import SerialTracer
+from suite.core.rng import dim_hashes, hashed_uniforms, pcg_np
 from suite.core.scene.model import CameraPose
 from suite.core.trace.base import MAX_RAY_LENGTH
 from suite.core.trace.robust import offset_ray_origin
@@ -625,8 +626,11 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     accumulation, rejects through its luminance edge-stopping; the denoised layers came out about half as
     bright as the reference (tests/methods/layered_pvs/test_radiance.py).
 
-    The paths are split into :data:`PATH_PARTS` parts (contiguous row ranges, each with its own random generator
-    spawned from ``rng``: the result does not depend on how the parts are scheduled). Each part's bounces run as
+    The random numbers are counter-based: the six of a bounce of row ``r`` (RR, the direction's two, the light's
+    choice and its point's two) are the PCG hash of (r, seed) and the dimension ``8 * depth + j``
+    (:func:`_path_numbers`), the device kernel's, so both take the same paths. The paths are split into
+    :data:`PATH_PARTS` parts (contiguous row ranges; a row's numbers do not depend on its part, so neither does the
+    result on how the parts are scheduled). Each part's bounces run as
     compiled passes over its wavefront (:mod:`methods.layered_pvs.kernels`) with the bits of
     :func:`path_trace_reference`, which runs the same parts one after the other. On a host tracer the parts and
     the primary fragments' direct lighting run on their own threads that take turns at the tracer (one query at
@@ -636,8 +640,9 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     not depend on the order the threads ran in.
 
     On a Dr.Jit tracer (``tracer.device``) the paths run as device kernels instead
-    (:func:`methods.layered_pvs.device.path_samples`: the same estimator with counter-based random numbers, so the
-    illumination agrees with the host passes' within noise, not bit for bit)."""
+    (:func:`methods.layered_pvs.device.path_samples`: the same estimator and random numbers, in float32 where the
+    device's cosine-weighted direction is, so the illumination agrees with the host passes' to rounding up to the
+    rare path that a last-bit difference sends elsewhere, not bit for bit)."""
     n = len(frag.position)
     lights = LightSampler(scene, t_s)
     if n == 0 or max_depth < 2 or len(lights) == 0:
@@ -645,8 +650,8 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     seed = int(rng.integers(1 << 31))
     device = getattr(tracer, "device", None)
     if device is not None:
-        # A Dr.Jit tracer: the direct light and the paths as device kernels (their own random numbers: the same
-        # estimators, other samples); the moments come back.
+        # A Dr.Jit tracer: the direct light and the paths as device kernels (the same estimators and samples); the
+        # moments come back.
         from methods.layered_pvs import device as layered_device
 
         g = layered_device.fragment_gbuffer(device, frag)  # the fragments go up once, for both
@@ -658,8 +663,8 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
 
     total = n * spp
     sample = np.zeros((total, 3))
-    parts = _path_parts(total, rng)
-    shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample)
+    parts = _path_parts(total)
+    shared = (scene, frag, t_s, spp, max_depth, rr_depth, lights, sample, int(rng.integers(1 << 31)))
 
     serial = SerialTracer(tracer, threading.Lock())
 
@@ -690,20 +695,29 @@ def path_trace(scene, tracer, frag: Fragments, t_s: float, spp: int, max_depth: 
     return illum, m1, m2
 
 
-# Parts of the path tracer's wavefront (row ranges with their own generators): while one part's rays are traced the
-# others shade, so the tracer finds a part ready more often the more there are, until the threads' switching costs
-# more than it saves. Measured on the 2-core machine (Embree, 480x270, 4 layers, stage against the raw replay of its
-# rays): living_room 0.68 / 0.75 / 0.83 / 0.77 / 0.72 with 2 / 3 / 4 / 6 / 8 parts, Dabrovic Sponza 0.82 with 2 and
-# 0.93 with 4.
+# Parts of the path tracer's wavefront (row ranges; a row's random numbers do not depend on its part): while one
+# part's rays are traced the others shade, so the tracer finds a part ready more often the more there are, until the
+# threads' switching costs more than it saves. Measured on the 2-core machine (Embree, 480x270, 4 layers, stage
+# against the raw replay of its rays): living_room 0.68 / 0.75 / 0.83 / 0.77 / 0.72 with 2 / 3 / 4 / 6 / 8 parts,
+# Dabrovic Sponza 0.82 with 2 and 0.93 with 4.
 PATH_PARTS = 4
 
 
-def _path_parts(total: int, rng) -> list:
-    """[(first row, end row, generator)]: the wavefront's rows in :data:`PATH_PARTS` contiguous ranges (one when
-    there are fewer rows than parts), each with a generator spawned from ``rng``."""
+def _path_parts(total: int) -> list:
+    """[(first row, end row)]: the wavefront's rows in :data:`PATH_PARTS` contiguous ranges (one when there are
+    fewer rows than parts)."""
     count = max(1, min(PATH_PARTS, total))
     bounds = np.linspace(0, total, count + 1).astype(np.int64)
-    return [(int(a), int(b), g) for a, b, g in zip(bounds[:-1], bounds[1:], rng.spawn(count))]
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _path_numbers(rows: np.ndarray, seed: int, depth: int, first: int, count: int) -> np.ndarray:
+    """(M, ``count``) float64: the random numbers ``first .. first + count - 1`` of the bounce at ``depth`` of the
+    wavefront ``rows`` (0: Russian roulette, 1-2: the direction, 3: the light's choice, 4-5: the point on it): the PCG
+    hash of (row, seed) and dimension ``8 * depth + j`` (:func:`suite.core.rng.hashed_uniforms`), which the device
+    kernel draws in the row's lane."""
+    dims = 8 * int(depth) + int(first) + np.arange(int(count))
+    return hashed_uniforms(np.ascontiguousarray(rows, np.int64), pcg_np(int(seed) & 0xFFFFFFFF), dim_hashes(dims))
 
 
 def _path_moments_reference(sample, direct, n: int, spp: int):
@@ -722,9 +736,9 @@ def _path_moments_reference(sample, direct, n: int, spp: int):
 
 
 def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth: int, rr_depth: int, lights,
-                sample, first: int, end: int, rng) -> None:
+                sample, seed: int, first: int, end: int) -> None:
     """The bounces of the wavefront rows ``first:end`` (row = sample * n + fragment), their contributions added to
-    ``sample`` (rows of other parts are not touched)."""
+    ``sample`` (rows of other parts are not touched); ``seed``: the paths' (:func:`_path_numbers`)."""
     from suite.core.pipeline import local_rays, trace_local
 
     n = len(frag.position)
@@ -753,12 +767,12 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
     m = total
     depth = 1
     while m and depth + 1 < max_depth:
-        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains); the random
-        # numbers in the reference's calls and sizes.
+        # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
         use_rr = depth >= rr_depth
-        u_rr = rng.random(m) if use_rr else no_rr
-        m = kern["_bounce"](rows[:m], ns, ng, p, thr[:m], use_rr, u_rr, rng.random((m, 2)), shift64, *offset,
-                            rows, thr, o64, d64, d32)
+        rn = _path_numbers(rows[:m], seed, depth, 0 if use_rr else 1, 3 if use_rr else 2)
+        u_rr = np.ascontiguousarray(rn[:, 0]) if use_rr else no_rr
+        m = kern["_bounce"](rows[:m], ns, ng, p, thr[:m], use_rr, u_rr, np.ascontiguousarray(rn[:, -2:]), shift64,
+                            *offset, rows, thr, o64, d64, d32)
         if m == 0:
             break
         # The rays are put in the tracing frame here, outside the lock a shared tracer is queried under. The float64
@@ -771,9 +785,10 @@ def _part_paths(tracer, scene, frag: Fragments, t_s: float, spp: int, max_depth:
             break
         p, ng_raw, ns_raw, alb, _ = surface_attributes(scene, positions, normals, prim[:m], u[:m], v[:m], o64[:m],
                                                        d64[:m])
+        # Next-event estimation towards one light (the numbers of the bounce's depth).
+        nee = _path_numbers(rows[:m], seed, depth, 3, 3)
+        u_sel, u2 = np.ascontiguousarray(nee[:, 0]), np.ascontiguousarray(nee[:, 1:])
         depth += 1
-        # Next-event estimation towards one light.
-        u_sel, u2 = rng.random(m), rng.random((m, 2))
         ng, ns = np.empty((m, 3)), np.empty((m, 3))
         k = kern["_shade_vertex"](rows[:m], p, ng_raw, ns_raw, alb, d64[:m], thr[:m], u_sel, u2, *light_args, shift64,
                                   *offset, SHADOW_TMAX_SCALE, ng, ns, thr, sel_rows, sel_o64, sel_d32, sel_tmax32,
@@ -798,7 +813,8 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
     shift = getattr(tracer, "shift", None)
     total = n * spp
     sample = np.zeros((total, 3))
-    for first, end, part_rng in _path_parts(total, rng):
+    seed = int(rng.integers(1 << 31))
+    for first, end in _path_parts(total):
         # One wavefront per part (row = sample * n + fragment); rows stay unique within it, so contributions are
         # added by plain fancy indexing.
         rows = np.arange(first, end)
@@ -810,11 +826,11 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
             # Russian roulette, then a cosine-weighted bounce (its pdf cancels cos/pi; the albedo remains).
             if depth >= rr_depth:
                 q = np.minimum(thr.max(axis=1), 0.95)
-                live = part_rng.random(m) < q
+                live = _path_numbers(rows, seed, depth, 0, 1)[:, 0] < q
                 thr = thr / np.maximum(q, 1e-12)[:, None]
             else:
                 live = np.ones(m, bool)
-            d_new = _cosine_hemisphere(ns, part_rng.random((m, 2)))
+            d_new = _cosine_hemisphere(ns, _path_numbers(rows, seed, depth, 1, 2))
             live &= _dot(d_new, ng) > 0
             if not live.any():
                 break
@@ -830,10 +846,10 @@ def path_trace_reference(scene, tracer, frag: Fragments, t_s: float, spp: int, m
             ng, ns, _ = _facing(ng2, ns2, d_new)
             thr = thr * alb2
             p = p2
+            # Next-event estimation towards one light (the numbers of the bounce's depth).
+            nee = _path_numbers(rows, seed, depth, 3, 3)
             depth += 1
-            m = len(rows)
-            # Next-event estimation towards one light.
-            wi, dist, wl, ok = lights.sample(p, part_rng.random(m), part_rng.random((m, 2)))
+            wi, dist, wl, ok = lights.sample(p, nee[:, 0], nee[:, 1:])
             cos_x = _dot(wi, ns)
             ok &= cos_x > 0
             if ok.any():

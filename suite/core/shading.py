@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-from suite.core import tea
+from suite.core import rng
 from suite.core.trace.robust import offset_ray_origin
 
 INV_PI = 1.0 / np.pi
@@ -198,12 +198,12 @@ def _area_numbers(pixels, samples: int, seed: int):
     base = np.uint32(seed_u * np.uint32(0x632BE5AB))
     for i in numba.prange(m):
         key = np.uint32(pixels[i])
-        perm_seed = tea.tea_u32(key, perm_key)
+        perm_seed = rng.tea_u32(key, perm_key)
         for k in range(samples):
-            stratum[i, k] = np.float64(tea.permute_kensler(np.uint32(k), samples, perm_seed))
+            stratum[i, k] = np.float64(rng.permute_kensler(np.uint32(k), samples, perm_seed))
             ctr = np.uint32(base + np.uint32(4 * k))
             for j in range(3):
-                xi[i, k, j] = np.float64(tea.tea_float32(key, np.uint32(ctr + np.uint32(j))))
+                xi[i, k, j] = np.float64(rng.tea_float32(key, np.uint32(ctr + np.uint32(j)), rng.TEA_ROUNDS))
     return stratum, xi
 
 

@@ -129,7 +129,7 @@ def test04_device_shading_equals_the_host_shading(backend):
 @pytest.mark.parametrize("backend", DRJIT)
 @pytest.mark.parametrize("name", ["cornell", "gallery", "atrium"])
 def test05_device_area_lights_take_the_host_estimators_samples(backend, name, at_parity):
-    """The same counter-based random numbers (suite.core.tea) and the same operations: on the same G-buffer and
+    """The same counter-based random numbers (suite.core.rng) and the same operations: on the same G-buffer and
     backend the device image equals the host estimator's bit for bit on llvm_ad_rgb (at parity on cuda_ad_rgb), for
     seed and number of samples, with alpha-tested occluders (gallery) and many lights (atrium); another seed gives
     another image."""

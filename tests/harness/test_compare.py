@@ -1,6 +1,5 @@
 """The shared compare matrix, the metric registry with its Pareto fronts, and the cross-method report built from
 stored results only (answer first, the claims of every method section in one table)."""
-import json
 import re
 import tomllib
 from pathlib import Path

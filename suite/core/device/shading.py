@@ -9,7 +9,7 @@
   :class:`DeviceVisibility` (made here, or uploaded from a received bitmap).
 * :func:`area_light_radiance`: the stratified area-light estimator of :mod:`suite.core.shading` (light chosen by
   power with a stratified number, a jittered sqrt(n) x sqrt(n) grid on the triangle) with the host estimator's
-  counter-based random numbers (TEA and Kensler's permutation, whose host twins are :mod:`suite.core.tea`) and its
+  counter-based random numbers (TEA and Kensler's permutation, whose host twins are :mod:`suite.core.rng`) and its
   operations in its order: on the same G-buffer the image is the host's bit for bit on ``llvm_ad_rgb``.
 * :func:`direct_lighting`: emission + point lights + area lights.
 
