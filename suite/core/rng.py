@@ -8,9 +8,10 @@ device twin, and the Embree and Dr.Jit backends agree to rounding instead of wit
   ``mi.sample_tea_float32`` and ``mi.permute_kensler``, which the device's area-light estimator draws with
   (:mod:`suite.core.device.shading`). Equal to Mitsuba's bit for bit (tests/core/test_rng.py).
 * The PCG hash (:func:`pcg`; Jarzynski and Olano, "Hash Functions for GPU Rendering", JCGT 2020: two multiplies and
-  a few shifts, an eighth of TEA's eight rounds, with better statistics than four) and :func:`hashed_uniforms`, the
-  numbers of a path tracer's lane: ``u = (pcg(pcg(key ^ pcg(seed)) ^ pcg(dim + 0x9E3779B9)) >> 8) / 2**24``. The
-  device twins are :mod:`suite.core.device.rng`.
+  a few shifts, about an eighth of the work of TEA's eight rounds; the paper's recommendation for its quality at its
+  cost) and :func:`hashed_uniforms`, the numbers of a path tracer's lane:
+  ``u = (pcg(pcg(key ^ pcg(seed)) ^ pcg(dim + 0x9E3779B9)) >> 8) / 2**24``. The device twins are
+  :mod:`suite.core.device.rng`.
 """
 from __future__ import annotations
 
