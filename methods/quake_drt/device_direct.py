@@ -26,6 +26,7 @@ import numpy as np
 from methods.quake_drt.primary import MAX_OVERLAY_LAYERS
 from methods.quake_drt.rng import DIM_LIGHTS
 from suite.core.device.context import packet_rows
+from suite.core.device.rng import pcg as _pcg  # rng.pcg_np on UInt32 lanes
 from suite.core.shading import SHADOW_TMAX_SCALE
 from suite.core.trace.alpha import MAX_ALPHA_LAYERS
 from suite.core.trace.base import MAX_RAY_LENGTH
@@ -33,13 +34,6 @@ from suite.core.trace.base import MAX_RAY_LENGTH
 INV_PI = 0.3183098861837907  # direct._generate's literal 1 / pi
 LIGHT_RECORD = 8  # float64 values per light record
 TRI_RECORD = 16  # float64 values per light triangle record (a power of two: one packet gather)
-
-
-def _pcg(dev, v):
-    """:func:`methods.quake_drt.rng.pcg_np` on UInt32 lanes (wrapping products, as numpy's uint32)."""
-    state = v * 747796405 + 2891336453
-    word = ((state >> ((state >> 28) + 4)) ^ state) * 277803737
-    return (word >> 22) ^ word
 
 
 def _uniform(dev, seed, dim):

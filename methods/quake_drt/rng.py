@@ -7,13 +7,16 @@ samples possible (Schied et al. 2018, §4; seed 001 Table 6.10 "RNG"): a pixel o
 re-shades a surface sample of the previous frame with the previous frame's seed repeats its random choices
 exactly, so the difference between the two shadings is temporal change, not noise.
 
-The hash is written twice: here for numpy arrays (uint32 wrap-around), and in :mod:`.direct` for its numba
-kernel (kept in that file so that numba's on-disk cache, which watches only the kernel's own file, sees a change).
-Both give the same bits (tests/methods/quake_drt/test_rng.py).
+The hash is the suite's (:func:`suite.core.rng.pcg_np` for numpy arrays, :func:`suite.core.device.rng.pcg` in
+Dr.Jit kernels), written once more in :mod:`.direct` for its numba kernel (kept in that file so that numba's on-disk
+cache, which watches only the kernel's own file, sees a change). All give the same bits
+(tests/methods/quake_drt/test_rng.py, tests/core/test_rng.py).
 """
 from __future__ import annotations
 
 import numpy as np
+
+from suite.core.rng import pcg_np  # the PCG hash of uint32 values (numpy, vectorised)
 
 # Dimension numbers of the decisions of one camera path (per pixel seed).
 DIM_JITTER_X, DIM_JITTER_Y = 0, 1          # anti-aliasing: position inside the pixel
@@ -22,15 +25,6 @@ DIM_SECONDARY = 4                          # + 3 * depth: glass branch, glossy d
 DIM_LIGHTS = 64                            # + 4 * sample: light choice, triangle choice, point (2)
 
 _INV_2_24 = 1.0 / 16777216.0
-
-
-def pcg_np(v: np.ndarray) -> np.ndarray:
-    """PCG hash of uint32 values (numpy, vectorised)."""
-    v = np.asarray(v, np.uint32)
-    with np.errstate(over="ignore"):
-        state = v * np.uint32(747796405) + np.uint32(2891336453)
-        word = ((state >> ((state >> np.uint32(28)) + np.uint32(4))) ^ state) * np.uint32(277803737)
-    return (word >> np.uint32(22)) ^ word
 
 
 def uniform_np(seed: np.ndarray, dim) -> np.ndarray:

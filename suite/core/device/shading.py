@@ -402,7 +402,7 @@ def area_light_radiance(g, area_lights, tracer, samples: int = 16, seed: int = 0
         ny = dr.gather(dev.Vector3d, lt.normal, light)
         y = (p0 + b1 * e1) + b2 * e2
         to_y = y - x
-        # dot products summed (x + y) + z, as the host estimator does (dr.dot would fuse multiply-adds)
+        # dot products summed (x + y) + z, written out as the host estimator writes them
         dist2 = dr.maximum(_dot(to_y, to_y), min_d2)
         dist = dr.sqrt(dist2)
         wdir = to_y / dist
