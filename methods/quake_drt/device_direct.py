@@ -2,10 +2,11 @@
 (``llvm_ad_rgb`` on the CPU, ``cuda_ad_rgb`` on the GPU): the device twin of :func:`methods.quake_drt.direct.shade`
 for Lambertian shading points.
 
-One lane per shading point. A symbolic loop runs over the point's light samples; each iteration picks a light of the
-point's table row (all of them, k distinct ones uniformly by Floyd's algorithm, or k by the row's power or irradiance
-distribution), samples a point on it, makes the shadow ray, traces it and adds the unoccluded contribution to the
-point's sum. So a packet of the loop holds neighbouring points and one light each (more coherent rays than the host's
+One lane per shading point, the points ordered by their light-table row (:func:`lane_order`). A symbolic loop runs over
+the point's light samples; each iteration picks a light of the point's table row (all of them, k distinct ones
+uniformly by Floyd's algorithm, or k by the row's power or irradiance distribution), samples a point on it, makes the
+shadow ray, traces it and adds the unoccluded contribution to the point's sum. So a packet of the loop holds
+neighbouring points of one row and, with every light chosen, one light (more coherent rays than the host's
 point-major chunks), and no ray ever leaves device memory.
 
 Every operation is the host kernel's (:func:`methods.quake_drt.direct._generate` and ``_accumulate``) in the same
@@ -80,6 +81,15 @@ class _Tables:
         self.rep_tri = dev.to_device(np.maximum(np.asarray(lights.rep_tri, np.int64), 0).astype(np.uint32), dev.UInt32)
 
 
+def lane_order(rows: np.ndarray) -> np.ndarray:
+    """The points' lane order: by light-table row, stably (points of one row keep their pixel order). A point's loop
+    runs as many iterations as its row chooses lights, and iteration ``q`` takes the row's ``q``-th light (k = 0), so
+    the lanes of a packet then run the same number of iterations (a packet loops until its last lane is done) and
+    trace towards the same light together. The sort is a radix sort of 16-bit keys where the rows fit."""
+    rows = np.asarray(rows)
+    return np.argsort(rows.astype(np.uint16) if rows.max(initial=0) < 1 << 16 else rows, kind="stable")
+
+
 def _nonempty(a, dtype) -> np.ndarray:
     """``a`` as ``dtype``, with one zero row when empty (a gather needs a non-empty source; every such gather is
     masked off)."""
@@ -103,12 +113,14 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
     take_host = row_n if k == 0 else np.minimum(row_n, k)
     max_take = int(take_host.max(initial=0))
     tab = _Tables(dev, lights, table, row_cdf, mode)
-    p = dev.to_device(np.asarray(points.p, np.float64), dev.Vector3d)
-    ng = dev.to_device(np.asarray(points.ng, np.float64), dev.Vector3d)
-    ns = dev.to_device(np.asarray(points.ns, np.float64), dev.Vector3d)
-    seed = dev.to_device(np.asarray(points.seed, np.uint32), U)
-    a = dev.to_device(row_a.astype(np.uint32), U)
-    n = dev.to_device(row_n.astype(np.uint32), U)
+    order = lane_order(rows)
+    pick = lambda x: np.asarray(x)[order]  # noqa: E731
+    p = dev.to_device(pick(np.asarray(points.p, np.float64)), dev.Vector3d)
+    ng = dev.to_device(pick(np.asarray(points.ng, np.float64)), dev.Vector3d)
+    ns = dev.to_device(pick(np.asarray(points.ns, np.float64)), dev.Vector3d)
+    seed = dev.to_device(pick(np.asarray(points.seed, np.uint32)), U)
+    a = dev.to_device(pick(row_a.astype(np.uint32)), U)
+    n = dev.to_device(pick(row_n.astype(np.uint32)), U)
     skip = None if skip_faces is None else dev.to_device(np.asarray(skip_faces, np.uint32), U)
     take = n if k == 0 else dr.minimum(n, k)
     subsample = take < n  # k < n: k of the n lights (all of them otherwise, weight 1)
@@ -232,8 +244,10 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
     _, acc, rays, visible, extra, _ = dr.while_loop(state, lambda q, *_: q < take, body)
     dev.eval(acc, rays, visible, extra)
     out = dev.to_host(acc, np.float64)
+    back = np.empty_like(out)
+    back[order] = out  # the points' own order
     bound = max(max_take, 1) * (MAX_ALPHA_LAYERS + 2) * (MAX_OVERLAY_LAYERS + 1)
-    return out, dev.sum_u32(rays, max_take), dev.sum_u32(visible, max_take), dev.sum_u32(extra, bound)
+    return back, dev.sum_u32(rays, max_take), dev.sum_u32(visible, max_take), dev.sum_u32(extra, bound)
 
 
 def _walk_past(dev, o_local, d, length, skip, blocked):

@@ -225,3 +225,16 @@ def test07_shadow_rays_walk_past_overlays_as_on_the_host(backend, renderer, devi
     assert c_h["rays_intersect"] > 0  # the backend found rays blocked by overlays, and the walk passed them
     if backend == "mitsuba-llvm":
         assert st_d == st_h and c_d == c_h
+
+
+@pytest.mark.parametrize("top", [40, 70_000])
+def test08_the_points_run_grouped_by_light_row_in_pixel_order(top):
+    """The kernel's lanes hold the points sorted by their light-table row (a packet then loops as often as each of its
+    points and traces towards one light), points of one row in their own order; rows past 16 bits sort too. The
+    illumination comes back in the points' order (test05: random rows)."""
+    rows = np.random.default_rng(3).integers(0, top, 5000)
+    order = device_direct.lane_order(rows)
+    assert np.array_equal(np.sort(order), np.arange(len(rows)))
+    assert (np.diff(rows[order]) >= 0).all()
+    same = np.diff(rows[order]) == 0
+    assert (np.diff(order)[same] > 0).all()
