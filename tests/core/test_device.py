@@ -456,3 +456,20 @@ def test15_where_any_gives_the_function_in_its_lanes_and_the_fallback_elsewhere(
     dev.eval(y, count)
     assert np.array_equal(dev.to_host(y, np.float32), np.where(mask_np, x_np * np.float32(2) + np.float32(1), 7))
     assert np.array_equal(dev.to_host(count, np.int64), mask_np.astype(np.int64))
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test16_vectors_interleaved_in_their_kernel_come_back_as_the_same_counted_rows(backend):
+    """``interleaved`` (written by the kernel that computes the vector) and ``rows_to_host`` give the rows and the
+    byte count ``to_host`` gives for the vector itself, float32 and float64, converted as asked."""
+    scene = load("living_room")
+    dev = make(backend, scene).device
+    dr = dev.dr
+    i = dev.Float64(dev.arange(1001))
+    for vec, size in ((dev.Vector3d(i * 0.5, -i, i * i + 0.25), 8), (dev.Vector3f(dev.Float(i), 2.0, dev.Float(-i)), 4)):
+        want = dev.to_host(vec)
+        before = dev.counters["bytes_to_host"]
+        got = dev.rows_to_host(dev.interleaved(vec), 3, np.float64)
+        assert got.shape == (1001, 3) and got.dtype == np.float64 and np.array_equal(got, want)
+        assert dev.counters["bytes_to_host"] - before == 1001 * 3 * size
+        assert dr.width(dev.interleaved(vec)) == 3003

@@ -272,6 +272,22 @@ class Device:
             out.append(HostCopy(a, nbytes) if with_bytes else a)
         return out
 
+    def interleaved(self, value):
+        """A vector's components interleaved into one flat array (x0 y0 z0 x1 ...), lazily: written by the kernel that
+        computes the vector, in :meth:`to_host_all`'s layout, where :meth:`to_host_all` would interleave them in a
+        kernel of its own (reading and writing every value once more). :meth:`rows_to_host` brings it back."""
+        return self.dr.ravel(value, order="F")
+
+    def rows_to_host(self, flat, width: int, dtype=None):
+        """An :meth:`interleaved` vector of ``width`` components as (N, width) host rows, counted as :meth:`to_host`
+        counts: on ``llvm_ad_rgb`` a view of its buffer (the array keeps the buffer alive; nothing writes to an
+        interleaved copy later), on ``cuda_ad_rgb`` one device-to-host copy."""
+        self.dr.eval(flat)
+        a = np.asarray(flat.numpy()).reshape(-1, int(width))
+        self.counters["bytes_to_host"] += int(a.nbytes)
+        self.counters["copies_to_host"] += 1
+        return a if dtype is None else a.astype(dtype, copy=False)
+
     def to_device(self, array: np.ndarray, dtype):
         """Uploads a numpy array as Dr.Jit ``dtype`` (for vector types, (N, k) rows) and counts the bytes."""
         a = np.asarray(array)
