@@ -834,7 +834,9 @@ def fragments(dev, layers, origins64: np.ndarray | None, dirs64: np.ndarray | No
     emission = dr.select(hit.front, dr.gather(dev.Vector3f, tables.emission, hit.mat, valid), 0.0) \
         if tables.any_emissive else dr.zeros(dev.Vector3f, n)
     fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission] + ([d] if view_dir is None else [])
-    host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32, np.float64])
+    # the twins evaluated in the kernel that makes the copies (else the path tracer's first read computes them again)
+    host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32, np.float64],
+                           keep=(hit.position, hit.ng, hit.ns))
     twins = SimpleNamespace(dev=dev, position=hit.position, geo_normal=hit.ng, normal=hit.ns)
     return Fragments((k, y, x), *host[:5], host[5] if view_dir is None else view_dir, device=twins)
 

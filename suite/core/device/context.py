@@ -247,9 +247,10 @@ class Device:
         counts the bytes. The one place device data becomes host memory (:meth:`to_host_all` for several)."""
         return self.to_host_all([value], [dtype], with_bytes)[0]
 
-    def to_host_all(self, values, dtypes=None, with_bytes: bool = False) -> list:
+    def to_host_all(self, values, dtypes=None, with_bytes: bool = False, keep=()) -> list:
         """:meth:`to_host` of several arrays, evaluated together first: arrays of one size in one kernel, where a
-        :meth:`to_host` each launches a kernel each for their gathers and interleaving."""
+        :meth:`to_host` each launches a kernel each for their gathers and interleaving. ``keep``: arrays that stay on
+        the device, evaluated in the same kernel (a lazy value both copied and kept would be computed twice)."""
         dr = self.dr
         if not values:
             return []
@@ -257,7 +258,7 @@ class Device:
         # Vectors are interleaved on the device (x0 y0 z0 x1 ...) into a private buffer: on llvm_ad_rgb numpy then
         # views it (no second copy; the array keeps the buffer alive), on cuda_ad_rgb it is one device-to-host copy.
         flat = [dr.ravel(v, order="F") if dr.depth_v(v) > 1 else v for v in values]
-        dr.eval(*flat)
+        dr.eval(*flat, *keep)
         out = []
         for v, f, dtype in zip(values, flat, dtypes):
             if dr.depth_v(v) > 1:

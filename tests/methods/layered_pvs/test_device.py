@@ -512,7 +512,8 @@ def test16_the_host_paths_trace_the_same_light_on_embree_and_on_mitsuba(backend)
 def test17_device_fragments_are_the_host_passes_fragments(backend, scene_name, at_parity):
     # The same layers (peeled on Embree) made into fragments by the compiled host passes and on the device: gallery's
     # albedo texture, arena's moving platform at t = 0.5, atrium's emissive panels (front faces only). The device
-    # keeps the positions and normals for the path tracer's G-buffer (no upload of its own).
+    # keeps the positions and normals for the path tracer's G-buffer (no upload of its own), evaluated with the copies
+    # (not computed again where the path tracer reads them).
     from methods.layered_pvs import device
     from suite.harness import runner
 
@@ -539,6 +540,9 @@ def test17_device_fragments_are_the_host_passes_fragments(backend, scene_name, a
             at_parity(getattr(got, name), getattr(want, name), share=0.999, rtol=1e-6, atol=1e-6)
     if scene_name == "atrium":
         assert want.emission.any() and not want.emission.all()
+    dr = tracer.device.dr
+    assert all(twin.x.state == dr.VarState.Evaluated for twin in (got.device.position, got.device.geo_normal,
+                                                                   got.device.normal))
     g = device.fragment_gbuffer(tracer.device, got)
     assert np.array_equal(tracer.device.to_host(g.position), got.position)
     empty = sv.Layers(*(np.full_like(a, -1 if a.dtype.kind == "i" else np.inf if name == "t" else 0)
