@@ -40,8 +40,9 @@ SVGF_ROW = 4  # float32 values per slot in the SVGF pass's tables (a power of tw
 def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, shift_scale: float,
                sigma_l: float, sigma_n: float):
     """One à-trous pass with tap spacing ``step``: the grids are flat (H, W, L) tables of rows of four float32
-    (``cv``: colour and variance; ``pv``: position relative to a point of the view (:func:`_relative`) and 1 where
-    the slot holds a fragment; ``nr``: normal and 0), one packet gather per slot read; the lanes the slots that hold
+    (``cv``: colour and variance; ``pv``: position relative to a point of the view (:func:`_relative`) and, where
+    the slot holds a fragment, the number of fragments at its pixel (0 elsewhere); ``nr``: normal and 0), one packet
+    gather per slot read; the lanes the slots that hold
     a fragment (``frags``, their flat indices, ascending); returns the new ``cv`` table (0 in empty slots, as the
     numba pass leaves them). The numba pass's operations in its order, in float32 (module docstring)."""
     dr, F, I32, U = dev.dr, dev.Float, dev.Int32, dev.UInt32
@@ -82,19 +83,25 @@ def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, 
         radius = dr.sqrt(F(tx * tx + ty * ty))            # math.sqrt of the same whole number, rounded to float32
         shift = shift_scale * foot * radius * step_f
         # §4.4.1: of the fragments at the tap, the one closest to the centre fragment's shifted plane; the search
-        # stops at the tap's first empty layer (the gather's mask carries it on)
-        def search(m, alive, best, best_d, best_pd):
-            q = row(pv, base + U(m), alive)
+        # stops at the tap's first empty layer (the gather's mask carries it on). The first layer is read before the
+        # loop, and its row's fragment count bounds the loop: a tap with one fragment (most of them) enters no loop
+        # iteration, where the loop would read the empty second layer to find its end (the same fragments visited).
+        def consider(m, q, alive, best, best_d, best_pd):
             alive = alive & (q[3] != 0.0)
             pd = (n.x * (q[0] - p.x) + n.y * (q[1] - p.y)) + n.z * (q[2] - p.z)
             dd = dr.abs(pd - shift)
             better = alive & (dd < best_d)
-            return (m + 1, alive, dr.select(better, m, best), dr.select(better, dd, best_d),
-                    dr.select(better, pd, best_pd))
+            return alive, dr.select(better, m, best), dr.select(better, dd, best_d), dr.select(better, pd, best_pd)
 
-        _, _, best, best_d, best_pd = dr.while_loop(
-            (dr.zeros(I32, size), inside, dr.full(I32, -1, size), dr.full(F, 3.0e38, size), dr.zeros(F, size)),
-            lambda m, alive, *_: alive & (m < L), search)
+        def search(m, alive, best, best_d, best_pd):
+            return (m + 1, *consider(m, row(pv, base + U(m), alive), alive, best, best_d, best_pd))
+
+        q0 = row(pv, base, inside)
+        count = I32(dr.select(inside, q0[3], 0.0))
+        first = consider(dr.zeros(I32, size), q0, inside, dr.full(I32, -1, size), dr.full(F, 3.0e38, size),
+                         dr.zeros(F, size))
+        _, _, best, best_d, best_pd = dr.while_loop((dr.full(I32, 1, size), *first),
+                                                    lambda m, alive, *_: alive & (m < count), search)
         found = best >= 0
         j = base + U(dr.maximum(best, 0))
         rb = row(cv, j, found)
@@ -165,7 +172,8 @@ def svgf_passes(dev, col, var, pos, nrm, val, dep, pix_angle: float, iterations:
     c, p, n = flat3(col), _relative(flat3(pos), valid), flat3(nrm)
     up = lambda columns: dev.to_device(packet_rows(columns, np.float32, SVGF_ROW), dev.Float)  # noqa: E731
     cv = up([c, np.asarray(var, np.float64).reshape(-1)])
-    pv = up([p, valid])
+    per_pixel = valid.reshape(-1, shape[-1])
+    pv = up([p, np.where(valid, np.repeat(per_pixel.sum(axis=1), shape[-1]), 0)])  # fragments at the slot's pixel
     nr = up([n])
     d = dev.to_device(np.ascontiguousarray(dep, np.float32).reshape(-1), dev.Float)
     frags = dev.dr.compress(dev.to_device(valid, dev.Bool))  # the lanes: the slots that hold a fragment
@@ -218,7 +226,12 @@ def denoise(dev, layers, frag, illum, var, pix_angle: float, iterations: int) ->
     ref = dr.gather(dev.Point3d, pos, dr.zeros(U, 1))
     zero = dr.zeros(F, n)
     dr.scatter(cv, X(F(c.x), F(c.y), F(c.z), F(var_g)), slot_pixel)
-    dr.scatter(pv, X(F(pos.x - ref.x), F(pos.y - ref.y), F(pos.z - ref.z), dr.full(F, 1.0, n)), slot_pixel)
+    # the fragments at each pixel (sums of ones: exact in any order)
+    at_pixel = dr.zeros(F, H * W)
+    dr.scatter_add(at_pixel, dr.full(F, 1.0, n), U(yy * W_ + xx))
+    dr.eval(at_pixel)
+    dr.scatter(pv, X(F(pos.x - ref.x), F(pos.y - ref.y), F(pos.z - ref.z), dr.gather(F, at_pixel, U(yy * W_ + xx))),
+               slot_pixel)
     dr.scatter(nr, X(F(nrm.x), F(nrm.y), F(nrm.z), zero), slot_pixel)
     d = dr.zeros(F, size)
     dr.scatter(d, F(t), slot_pixel)
