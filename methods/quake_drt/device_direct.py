@@ -2,10 +2,11 @@
 (``llvm_ad_rgb`` on the CPU, ``cuda_ad_rgb`` on the GPU): the device twin of :func:`methods.quake_drt.direct.shade`
 for Lambertian shading points.
 
-One lane per shading point, the points ordered by their light-table row (:func:`lane_order`). A symbolic loop runs over
-the point's light samples; each iteration picks a light of the point's table row (all of them, k distinct ones
-uniformly by Floyd's algorithm, or k by the row's power or irradiance distribution), samples a point on it, makes the
-shadow ray, traces it and adds the unoccluded contribution to the point's sum. So a packet of the loop holds
+One lane per shading point, the points ordered by their light-table row where they take several lights
+(:func:`lane_order`). A symbolic loop runs over the point's light samples; each iteration picks a light of the point's
+table row (all of them, k distinct ones uniformly by Floyd's algorithm, or k by the row's power or irradiance
+distribution), samples a point on it, makes the shadow ray, traces it and adds the unoccluded contribution to the
+point's sum. So a packet of the loop holds
 neighbouring points of one row and, with every light chosen, one light (more coherent rays than the host's
 point-major chunks), and no ray ever leaves device memory.
 
@@ -113,14 +114,18 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
     take_host = row_n if k == 0 else np.minimum(row_n, k)
     max_take = int(take_host.max(initial=0))
     tab = _Tables(dev, lights, table, row_cdf, mode)
-    order = lane_order(rows)
-    pick = lambda x: np.asarray(x)[order]  # noqa: E731
-    p = dev.to_device(pick(np.asarray(points.p, np.float64)), dev.Vector3d)
-    ng = dev.to_device(pick(np.asarray(points.ng, np.float64)), dev.Vector3d)
-    ns = dev.to_device(pick(np.asarray(points.ns, np.float64)), dev.Vector3d)
-    seed = dev.to_device(pick(np.asarray(points.seed, np.uint32)), U)
-    a = dev.to_device(pick(row_a.astype(np.uint32)), U)
-    n = dev.to_device(pick(row_n.astype(np.uint32)), U)
+    p = dev.to_device(np.asarray(points.p, np.float64), dev.Vector3d)
+    ng = dev.to_device(np.asarray(points.ng, np.float64), dev.Vector3d)
+    ns = dev.to_device(np.asarray(points.ns, np.float64), dev.Vector3d)
+    seed = dev.to_device(np.asarray(points.seed, np.uint32), U)
+    a = dev.to_device(row_a.astype(np.uint32), U)
+    n = dev.to_device(row_n.astype(np.uint32), U)
+    # Lanes in row order where a point takes more than one light (lane_order; with one each, every packet loops once
+    # anyway): the points' data gathered in that order in the kernel, the sums scattered back to the points' order.
+    lane = dev.to_device(lane_order(rows).astype(np.uint32), U) if max_take > 1 else None
+    if lane is not None:
+        p, ng, ns = (dr.gather(dev.Vector3d, v, lane) for v in (p, ng, ns))
+        seed, a, n = (dr.gather(U, v, lane) for v in (seed, a, n))
     skip = None if skip_faces is None else dev.to_device(np.asarray(skip_faces, np.uint32), U)
     take = n if k == 0 else dr.minimum(n, k)
     subsample = take < n  # k < n: k of the n lights (all of them otherwise, weight 1)
@@ -242,12 +247,14 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
     state = (dr.zeros(U, n_pts), dr.zeros(dev.Vector3d, n_pts), dr.zeros(U, n_pts), dr.zeros(U, n_pts),
              dr.zeros(U, n_pts), dup0)
     _, acc, rays, visible, extra, _ = dr.while_loop(state, lambda q, *_: q < take, body)
+    if lane is not None:  # back in the points' order
+        sums = dr.zeros(dev.Vector3d, n_pts)
+        dr.scatter(sums, acc, lane)
+        acc = sums
     dev.eval(acc, rays, visible, extra)
     out = dev.to_host(acc, np.float64)
-    back = np.empty_like(out)
-    back[order] = out  # the points' own order
     bound = max(max_take, 1) * (MAX_ALPHA_LAYERS + 2) * (MAX_OVERLAY_LAYERS + 1)
-    return back, dev.sum_u32(rays, max_take), dev.sum_u32(visible, max_take), dev.sum_u32(extra, bound)
+    return out, dev.sum_u32(rays, max_take), dev.sum_u32(visible, max_take), dev.sum_u32(extra, bound)
 
 
 def _walk_past(dev, o_local, d, length, skip, blocked):
