@@ -62,13 +62,17 @@ SECONDARY_SCENE = "gallery"  # embedded: a mirror and glass in view, for the sec
 SHORT_STAGE_REPEATS = 11  # the fewest repeats of the primary and secondary stages in part rays
 
 
-def _median_ms(fn, repeats: int):
-    """(median ms over ``repeats`` calls after one warm-up, last result)."""
+def _median_ms(fn, repeats: int, device=None):
+    """(median ms over ``repeats`` calls after one warm-up, last result). ``device``: a Dr.Jit device whose work each
+    call waits for (its kernels run asynchronously; a stage that leaves its results on the device would otherwise
+    be timed without them)."""
     result = fn()
     times = []
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         result = fn()
+        if device is not None:
+            device.sync()
         times.append(time.perf_counter() - t0)
     return 1e3 * float(np.median(times)), result
 
@@ -272,7 +276,7 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
         def timed(name, fn):
             taps[name] = _Taps()
             fn(taps[name])  # the work counter of one call (the same for every call)
-            times[name], result = _median_ms(lambda: fn(None), repeats)
+            times[name], result = _median_ms(lambda: fn(None), repeats, den.device)
             return result
 
         grad = timed("gradient", lambda st: den.gradient(raw.illum, fwd, st))
@@ -306,15 +310,17 @@ def bench_asvgf(scene, tracer, resolutions, t_s: float, repeats: int, devices=()
                 def chain():
                     den._frame = den._frame_colour = None
                     t = [time.perf_counter()]
-                    c_d, m_d, h_d, _ = den.temporal(raw.illum, raw.guides, alag)
-                    t.append(time.perf_counter())
-                    v_d = den.variance(raw.illum, m_d, h_d, raw.guides)
-                    t.append(time.perf_counter())
-                    den.atrous(c_d, v_d, raw.guides)
-                    t.append(time.perf_counter())
+
+                    def done(result):  # each stage's kernels waited for before its clock stops
+                        den.device.sync()
+                        t.append(time.perf_counter())
+                        return result
+
+                    c_d, m_d, h_d, _ = done(den.temporal(raw.illum, raw.guides, alag))
+                    v_d = done(den.variance(raw.illum, m_d, h_d, raw.guides))
+                    done(den.atrous(c_d, v_d, raw.guides))
                     dtaa.history = taa_history["kept"]
-                    dtaa(composed, raw.g.motion)
-                    t.append(time.perf_counter())
+                    done(dtaa(composed, raw.g.motion))
                     return np.diff(t) * 1e3
 
                 dtaa.history = None

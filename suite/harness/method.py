@@ -152,6 +152,15 @@ class Clock:
         return wall_s
 
 
+def wait_for_device(tracer) -> None:
+    """Waits for the device work a stage launched (a Dr.Jit tracer's: kernels run asynchronously on both variants,
+    on the CPU's thread pool too), so that the stage's clock stops when its work is done, not when the next stage's
+    first copy waits for it."""
+    device = getattr(tracer, "device", None)
+    if device is not None:
+        device.sync()
+
+
 def _ray_count(tracer) -> int:
     counters = getattr(tracer, "counters", None) or {}
     return int(counters.get("rays_intersect", 0)) + int(counters.get("rays_occluded", 0))
@@ -404,6 +413,7 @@ class Context:
         with running_on(place):
             t0 = time.perf_counter()
             yield rec
+            wait_for_device(self.tracer)
             wall_s = time.perf_counter() - t0
         self._in_stage = None
         rec.rays = _ray_count(self.tracer) - rays0

@@ -216,3 +216,30 @@ def test11_updates_never_repeat_an_input_even_when_they_cost_nothing():
     # frame samples its input and then shows what had arrived), and frame 2 is the last: no update follows it
     assert [u.input_frame for u in updates] == [0, 1]
     assert [f.update_index for f in frames] == [-1, 0, 1]
+
+
+def test12_a_stage_waits_for_its_device_work_before_its_clock_stops():
+    """Dr.Jit kernels run asynchronously: the stage's block ends, then the tracer's device is waited for, then the
+    stage's wall time is taken (the work is billed to the stage that launched it)."""
+    import time
+
+    order = []
+
+    class Device:
+        def sync(self):
+            time.sleep(0.02)  # the device still running the stage's kernels
+            order.append("sync")
+
+    tracer = type("Tracer", (), {"device": Device(), "counters": {}})()
+    walls = []
+
+    def frame(g):
+        ctx = Context(g, scene=None, tracer=tracer, t_s=0.0, prev_t_s=None, resolution=(4, 2), seed=0, params={},
+                      zero_latency=False, clock=Clock())
+        with ctx.stage("launch", place="client", after=[]):
+            order.append("block")
+        walls.append(ctx.stages[-1].wall_ms)
+        return None
+
+    run_sync(_timeline(delay_ms=1.0), 1, 0.1, frame)
+    assert order == ["block", "sync"] and walls[0] >= 20.0
