@@ -114,9 +114,13 @@ class ShadingPoints:
 
     @staticmethod
     def concat(parts: list) -> "ShadingPoints":
-        parts = [p for p in parts if p is not None]
+        """The parts' points in order; a single part with points is returned as it is (no copy of its fields: shading
+        points are not written to once made)."""
+        parts = [p for p in parts if p is not None and len(p)]
         if not parts:
             return ShadingPoints.empty()
+        if len(parts) == 1:
+            return parts[0]
         return ShadingPoints(*[np.concatenate([getattr(p, f) for p in parts]) for f in _FIELDS])
 
     @staticmethod

@@ -266,3 +266,29 @@ def test10_on_a_drjit_tracer_the_primary_stage_takes_the_device_gbuffer_with_the
         for field in ("position", "normal", "geo_normal", "albedo", "depth", "prim", "valid"):
             assert _same(getattr(g_dev, field), getattr(g_host, field)), field
     assert len(calls) == len(_scenes())
+
+
+def test11_row_assignment_and_shading_point_joins_equal_numpys():
+    """``primary.put_rows`` (whole rows through a void view) is ``dst[rows] = src`` for 1-D and (N, k) arrays, other
+    source dtypes and strided sources; ``ShadingPoints.concat`` of one part with points is that part, of several
+    their fields joined in order."""
+    rng = np.random.default_rng(11)
+    rows = np.sort(rng.choice(500, 70, replace=False))
+    cases = [(rng.random(500), rng.random(70)), (rng.random((500, 3)), rng.random((70, 3))),
+             (rng.integers(0, 9, (500, 3)), rng.integers(0, 9, (70, 3))),
+             (rng.random((500, 3)), rng.random((70, 3)).astype(np.float32)),
+             (rng.random((500, 3)), rng.random((70, 6))[:, ::2]), (np.zeros(500, bool), rng.random(70) < 0.5)]
+    for dst, src in cases:
+        want = dst.copy()
+        want[rows] = src
+        primary.put_rows(dst, rows, src)
+        assert np.array_equal(dst, want)
+    one = direct.ShadingPoints.empty()
+    one = dataclasses.replace(one, pixel=np.arange(4), throughput=rng.random((4, 3)), p=rng.random((4, 3)),
+                              ng=rng.random((4, 3)), ns=rng.random((4, 3)), wi=rng.random((4, 3)),
+                              albedo=rng.random((4, 3)), material=np.arange(4), prim=np.arange(4),
+                              seed=np.arange(4, dtype=np.uint32), lambert=np.ones(4, bool))
+    assert direct.ShadingPoints.concat([one, None, direct.ShadingPoints.empty()]) is one
+    two = direct.ShadingPoints.concat([one, one])
+    assert len(two) == 8 and np.array_equal(two.p, np.concatenate([one.p, one.p]))
+    assert len(direct.ShadingPoints.concat([None, direct.ShadingPoints.empty()])) == 0
