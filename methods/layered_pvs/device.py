@@ -42,9 +42,9 @@ def _svgf_pass(dev, shape, frags, cv, pv, nr, dep, step: int, pix_angle: float, 
     """One à-trous pass with tap spacing ``step``: the grids are flat (H, W, L) tables of rows of four float32
     (``cv``: colour and variance; ``pv``: position relative to a point of the view (:func:`_relative`) and, where
     the slot holds a fragment, the number of fragments at its pixel (0 elsewhere); ``nr``: normal and 0), one packet
-    gather per slot read; the lanes the slots that hold
-    a fragment (``frags``, their flat indices, ascending); returns the new ``cv`` table (0 in empty slots, as the
-    numba pass leaves them). The numba pass's operations in its order, in float32 (module docstring)."""
+    gather per slot read; the lanes the slots that hold a fragment (``frags``, their flat indices, ascending);
+    returns the new ``cv`` table (0 in empty slots, as the numba pass leaves them). The numba pass's operations in
+    its order, in float32 (module docstring)."""
     dr, F, I32, U = dev.dr, dev.Float, dev.Int32, dev.UInt32
     H, W, L = shape
     X = dev.m.ArrayXf

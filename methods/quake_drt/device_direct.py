@@ -6,9 +6,8 @@ One lane per shading point, the points ordered by their light-table row where th
 (:func:`lane_order`). A symbolic loop runs over the point's light samples; each iteration picks a light of the point's
 table row (all of them, k distinct ones uniformly by Floyd's algorithm, or k by the row's power or irradiance
 distribution), samples a point on it, makes the shadow ray, traces it and adds the unoccluded contribution to the
-point's sum. So a packet of the loop holds
-neighbouring points of one row and, with every light chosen, one light (more coherent rays than the host's
-point-major chunks), and no ray ever leaves device memory.
+point's sum. So a packet of the loop holds neighbouring points of one row and, with every light chosen, one light
+(more coherent rays than the host's point-major chunks), and no ray ever leaves device memory.
 
 Every operation is the host kernel's (:func:`methods.quake_drt.direct._generate` and ``_accumulate``) in the same
 float64 order: the PCG random numbers of (point seed, dimension), the robust origin, the horizon and emitter tests,
