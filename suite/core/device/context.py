@@ -257,7 +257,7 @@ class Device:
         dtypes = [None] * len(values) if dtypes is None else dtypes
         # Vectors are interleaved on the device (x0 y0 z0 x1 ...) into a private buffer: on llvm_ad_rgb numpy then
         # views it (no second copy; the array keeps the buffer alive), on cuda_ad_rgb it is one device-to-host copy.
-        flat = [dr.ravel(v, order="F") if dr.depth_v(v) > 1 else v for v in values]
+        flat = [self.interleaved(v) if dr.depth_v(v) > 1 else v for v in values]
         dr.eval(*flat, *keep)
         out = []
         for v, f, dtype in zip(values, flat, dtypes):
@@ -265,13 +265,18 @@ class Device:
                 a = np.asarray(f.numpy()).reshape(-1, len(v))
             else:
                 a = np.array(f.numpy())  # a copy: the device array may change later (scatters)
-            nbytes = int(a.nbytes)  # what crossed, before any conversion on the host
-            if dtype is not None and a.dtype != np.dtype(dtype):
-                a = a.astype(dtype)
-            self.counters["bytes_to_host"] += nbytes
-            self.counters["copies_to_host"] += 1
-            out.append(HostCopy(a, nbytes) if with_bytes else a)
+            out.append(self._counted(a, dtype, with_bytes))
         return out
+
+    def _counted(self, a: np.ndarray, dtype, with_bytes: bool):
+        """A host copy counted (its bytes as they crossed, before any conversion on the host), converted to
+        ``dtype``."""
+        nbytes = int(a.nbytes)
+        if dtype is not None and a.dtype != np.dtype(dtype):
+            a = a.astype(dtype)
+        self.counters["bytes_to_host"] += nbytes
+        self.counters["copies_to_host"] += 1
+        return HostCopy(a, nbytes) if with_bytes else a
 
     def interleaved(self, value):
         """A vector's components interleaved into one flat array (x0 y0 z0 x1 ...), lazily: written by the kernel that
@@ -284,10 +289,7 @@ class Device:
         counts: on ``llvm_ad_rgb`` a view of its buffer (the array keeps the buffer alive; nothing writes to an
         interleaved copy later), on ``cuda_ad_rgb`` one device-to-host copy."""
         self.dr.eval(flat)
-        a = np.asarray(flat.numpy()).reshape(-1, int(width))
-        self.counters["bytes_to_host"] += int(a.nbytes)
-        self.counters["copies_to_host"] += 1
-        return a if dtype is None else a.astype(dtype, copy=False)
+        return self._counted(np.asarray(flat.numpy()).reshape(-1, int(width)), dtype, False)
 
     def to_device(self, array: np.ndarray, dtype):
         """Uploads a numpy array as Dr.Jit ``dtype`` (for vector types, (N, k) rows) and counts the bytes."""
