@@ -473,3 +473,53 @@ def test16_vectors_interleaved_in_their_kernel_come_back_as_the_same_counted_row
         assert got.shape == (1001, 3) and got.dtype == np.float64 and np.array_equal(got, want)
         assert dev.counters["bytes_to_host"] - before == 1001 * 3 * size
         assert dr.width(dev.interleaved(vec)) == 3003
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+@pytest.mark.parametrize("width, height", [(1, 5), (7, 3), (33, 19), (1920, 2), (16384, 3)])
+def test18_camera_rays_take_row_and_column_of_every_pixel_exactly(backend, width, height):
+    """The pixel's row comes from a float64 product with the width's reciprocal, not an integer division: exact at
+    every width (the first and last pixel of each row included, up to the largest 32-bit index), so the directions
+    are the host's."""
+    from suite.core.device import camera_rays
+    from suite.core.device.gbuffer import row_col
+
+    scene = load("atrium")
+    dev = make(backend, scene).device
+    last = 2 ** 32 - 1
+    big = np.unique(np.concatenate([[0, 1, last - 1, last], np.arange(last // width - 2, last // width + 1) * width,
+                                    np.arange(last // width - 2, last // width + 1) * width - 1]))
+    big = big[(big >= 0) & (big <= last)].astype(np.uint32)
+    r, c = row_col(dev, dev.to_device(big, dev.UInt32), width)
+    assert np.array_equal(dev.to_host(r), big // width) and np.array_equal(dev.to_host(c), big % width)
+    pose = scene.camera.pose_at(0.7)
+    d_dev, row, col = camera_rays(dev, pose, scene.camera.fov_deg, width, height)
+    idx = np.arange(width * height)
+    assert np.array_equal(dev.to_host(row), idx // width) and np.array_equal(dev.to_host(col), idx % width)
+    if exact(backend):
+        _, d64 = host_gbuffer.camera_rays(pose, scene.camera.fov_deg, width, height, dtype=np.float64)
+        assert np.array_equal(dev.to_host(d_dev), d64)
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test19_the_gbuffer_keeps_the_facing_and_derives_the_emission(backend):
+    """On a scene with emitters the G-buffer kernel writes one byte of facing per pixel, not twelve of emission: the
+    emission is an expression of the facing and the material (fused into the kernel that reads it) and equals the host
+    G-buffer's (atrium's view sees its emitters); a scene without emitters keeps neither."""
+    from suite.core.device import render_gbuffer
+
+    scene = load("atrium")
+    tracer = make(backend, scene)
+    dr = tracer.device.dr
+    g = render_gbuffer(scene, tracer, 0.9, RES, 0.8)
+    assert g.front is not None and dr.width(g.front) == RES[0] * RES[1]
+    assert g.front.state == dr.VarState.Evaluated and g.emission.state != dr.VarState.Evaluated
+    host = host_gbuffer.render_gbuffer(scene, tracer, 0.9, RES, 0.8, device=False)
+    emission = g.to_host(names=["emission"]).emission
+    assert (host.emission.max(axis=-1) > 0).any()
+    if exact(backend):
+        assert np.array_equal(emission, host.emission)
+    np.testing.assert_allclose(emission, host.emission, atol=1e-6)
+    plain = load("living_room")
+    g = render_gbuffer(plain, make(backend, plain), 0.9, RES)
+    assert g.front is None and g.emission is None and not g.to_host(names=["emission"]).emission.any()

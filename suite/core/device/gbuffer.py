@@ -42,7 +42,7 @@ class DeviceGBuffer:
     normal: object  # Vector3f: shading normal facing the camera
     geo_normal: object  # Vector3f: geometric normal facing the camera
     albedo: object  # Vector3f
-    emission: object | None  # Vector3f: radiance toward the camera (front of area lights); None: all zero
+    emission: object | None  # Vector3f: radiance toward the camera (front of area lights, from `front`); None: zero
     depth: object  # Float: distance along the ray, inf for background
     prim: object  # Int32: global face index, -1 for background
     valid: object  # Bool
@@ -55,6 +55,7 @@ class DeviceGBuffer:
     rays: int = 0  # backend queries the G-buffer made (camera rays plus alpha re-traces)
     stage_ms: dict = field(default_factory=dict)  # per-stage wall times when traced stage by stage (benchmarks)
     camera: tuple | None = None  # (pose, fov_deg) the view directions are recomputed from
+    front: object | None = None  # Bool: the camera ray met the hit's front (where the scene emits; see render_gbuffer)
 
     def get(self, name: str):
         """A field by name, computing the ones the G-buffer kernel does not store (view directions, kind codes, zero
@@ -89,7 +90,7 @@ class DeviceGBuffer:
         """The stored Dr.Jit arrays (what the G-buffer kernel writes; ``valid``, ``material`` and ``kind`` are cheap
         expressions of ``prim`` that kernels using them recompute, so they are not stored)."""
         out = [self.position, self.normal, self.geo_normal, self.albedo, self.emission, self.depth, self.prim,
-               self.view_dir, self.u, self.v, self.motion]
+               self.view_dir, self.u, self.v, self.motion, self.front]
         return [x for x in out if x is not None]
 
     def to_host(self, names=None, with_bytes: bool = False):
@@ -170,16 +171,26 @@ def camera_rays(dev, pose, fov_deg: float, width: int, height: int):
     return camera_rays_from(dev, dev.opaques(camera_scalars(pose, fov_deg, width, height)), width, height)
 
 
+def row_col(dev, idx, width: int):
+    """(row, column) UInt32 of row-major pixel indices ``idx`` (UInt32) in rows of ``width``.
+
+    The row without an integer division (a scalar division per lane on a CPU, where no SIMD instruction divides
+    integers): ``(idx + 0.5) / width`` lies at least ``0.5 / width`` inside ``(row, row + 1)``, and its float64 product
+    with the rounded reciprocal is off by at most about 2^-52 of the quotient, below that margin for any index under
+    2^51. Exact."""
+    U, F64 = dev.UInt32, dev.Float64
+    row = U(dev.dr.floor((F64(idx) + 0.5) * dev.opaque(F64, 1.0 / width)))
+    # the width as a broadcast scalar: a gathered one reads 0 in the masked tail lanes of a packet
+    return row, idx - row * dev.opaque(U, width)
+
+
 def camera_rays_from(dev, ops, width: int, height: int):
     """:func:`camera_rays` from the values of :func:`camera_scalars` on the device (read from memory: no
     recompilation per frame; exact division)."""
-    dr, F64, U = dev.dr, dev.Float64, dev.UInt32
+    dr, F64 = dev.dr, dev.Float64
     w, h, tan_op, aspect_op, *basis = ops
     fwd_op, right_op, up_op = basis[0:3], basis[3:6], basis[6:9]
-    idx = dev.arange(width * height)
-    w_u = dev.opaque(U, width)  # a broadcast scalar: a gathered divisor reads 0 in the masked tail lanes of a packet
-    row = idx // w_u
-    col = idx - row * w_u
+    row, col = row_col(dev, dev.arange(width * height), width)
     sx = (F64(col) + 0.5) / w
     sy = (F64(row) + 0.5) / h
     px = (2.0 * sx - 1.0) * tan_op
@@ -249,11 +260,15 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     g = DeviceGBuffer(device=dev, width=width, height=height, t_s=float(t_s),
                       camera_position=np.asarray(pose.position, np.float32), valid=None, view_dir=None,
                       material=None, kind=None, camera=(pose, float(scene.camera.fov_deg)),
-                      **{name: out.get(name) for name in ("position", "normal", "geo_normal", "albedo", "emission",
-                                                          "depth", "prim", "u", "v", "motion")})
-    # Cheap expressions of the stored primitive ids, fused into whatever kernel reads them.
+                      emission=None, **{name: out.get(name) for name in ("position", "normal", "geo_normal", "albedo",
+                                                                         "depth", "prim", "u", "v", "motion")})
+    # Cheap expressions of the stored primitive ids (and facing), fused into whatever kernel reads them.
     g.valid = g.prim >= 0
     g.material = dr.select(g.valid, dr.gather(I, tables.face_material, dr.maximum(g.prim, 0), g.valid), -1)
+    g.front = out.get("front")
+    if g.front is not None:
+        g.emission = dr.select(g.front, dr.gather(dev.Vector3f, tables.emission, dr.maximum(g.material, 0), g.front),
+                               dev.Vector3f(0.0, 0.0, 0.0))
     g.rays = n if traced is None else dev.sum_u32(traced)
     tracer.counters["rays_intersect"] += g.rays
     g.stage_ms = stage_ms
@@ -335,13 +350,14 @@ def _gbuffer_kernel(dev, scalars, motion_table, width: int, height: int, keep_hi
 
     # 3. attributes (surface_attributes + the facing of render_gbuffer), float64 where the host is
     hit = hit_surface(dev, prim, u, v, valid, ray_o, d64, dev.Vector3d(d32))
-    position, ns_view, ng_view, albedo, mat, front = hit.position, hit.ns, hit.ng, hit.albedo, hit.mat, hit.front
+    position, ns_view, ng_view, albedo, front = hit.position, hit.ns, hit.ng, hit.albedo, hit.front
     zero3 = dev.Vector3f(0.0, 0.0, 0.0)
     out = {}
-    # Not stored when they can be had later for little: zero emission, kind codes (from the material), view
-    # directions (from the camera); each costs memory traffic at every pixel of every frame.
+    # Not stored when they can be had later for little: emission (a gather by material where the ray met the front,
+    # so the facing is stored, a byte per pixel instead of twelve), kind codes (from the material), view directions
+    # (from the camera); each costs memory traffic at every pixel of every frame.
     if tables.any_emissive:
-        out["emission"] = dr.select(valid & front, dr.gather(dev.Vector3f, tables.emission, mat, valid), zero3)
+        out["front"] = valid & front
     out["position"] = position = dr.select(valid, position, dev.Point3d(0.0, 0.0, 0.0))
     out["normal"] = dr.select(valid, dev.Vector3f(ns_view), zero3)
     out["geo_normal"] = dr.select(valid, dev.Vector3f(ng_view), zero3)
