@@ -189,19 +189,32 @@ def shade(dev, points, lights, table, rows: np.ndarray, k: int, mode: str, soft:
         rec = dr.gather(dev.m.ArrayXf64, tab.light_rec, light, valid, shape=(LIGHT_RECORD, n_pts))
         is_point = rec[7] != 0.0
         on_area = valid & ~is_point
-        if soft:
-            ta = dr.gather(U, tab.tri_off, light, on_area)
-            tn = dr.gather(U, tab.tri_off, light + 1, on_area) - ta
-            tri = ta + _find(dev, tab.tri_cdf, ta, tn, _uniform(dev, seed, dimbase + 1), on_area)
-            su = dr.sqrt(_uniform(dev, seed, dimbase + 2))
-            b1 = 1.0 - su
-            b2 = _uniform(dev, seed, dimbase + 3) * su
-        else:
-            tri = dr.gather(U, tab.rep_tri, light, on_area)
-            b1 = b2 = F64(1.0 / 3.0)
-        r = dr.gather(dev.m.ArrayXf64, tab.tri_rec, tri, on_area, shape=(TRI_RECORD, n_pts))
-        p0, e1, e2, ny = r[0:3], r[3:6], r[6:9], r[9:12]
-        y = [dr.select(is_point, rec[c], p0[c] + b1 * e1[c] + b2 * e2[c]) for c in range(3)]
+
+        def area_point(on_area):
+            """The point on the area light and the light's normal (the lanes of ``on_area``)."""
+            if soft:
+                ta = dr.gather(U, tab.tri_off, light, on_area)
+                tn = dr.gather(U, tab.tri_off, light + 1, on_area) - ta
+                tri = ta + _find(dev, tab.tri_cdf, ta, tn, _uniform(dev, seed, dimbase + 1), on_area)
+                su = dr.sqrt(_uniform(dev, seed, dimbase + 2))
+                b1 = 1.0 - su
+                b2 = _uniform(dev, seed, dimbase + 3) * su
+            else:
+                tri = dr.gather(U, tab.rep_tri, light, on_area)
+                b1 = b2 = F64(1.0 / 3.0)
+            r = dr.gather(dev.m.ArrayXf64, tab.tri_rec, tri, on_area, shape=(TRI_RECORD, n_pts))
+            p0, e1, e2, ny = r[0:3], r[3:6], r[6:9], r[9:12]
+            return (*[p0[c] + b1 * e1[c] + b2 * e2[c] for c in range(3)], *ny[0:3])
+
+        if lane is not None:
+            # Only in the packets that sample an area light: in lane order (lane_order) a packet's lanes mostly take
+            # the same light, and a point light's packet skips the triangle's choice, its record and random numbers.
+            zero = dr.zeros(F64, n_pts)
+            *y, ny0, ny1, ny2 = dev.where_any(on_area, area_point, rec[0], rec[1], rec[2], zero, zero, zero)
+        else:  # lanes in the points' order mix the kinds: every packet would take the area light's branch anyway
+            *y_area, ny0, ny1, ny2 = area_point(on_area)
+            y = [dr.select(is_point, rec[c], y_area[c]) for c in range(3)]
+        ny = (ny0, ny1, ny2)
         tx, ty, tz = y[0] - o64.x, y[1] - o64.y, y[2] - o64.z
         d2 = tx * tx + ty * ty + tz * tz
         dist = dr.sqrt(d2)
