@@ -504,8 +504,9 @@ class ASVGF:
         any_short = bool(dr.any(short))
         if any_short:
             lum = self._device_inputs(illum, guides)["lum"]
-            var = dr.select(short, dden.spatial_variance(self._device_frame(guides), lum, float(self.s.phi_normal)),
-                            var)
+            # the spatial estimate only where the history is short (in the packets that hold such a pixel)
+            var = dr.select(short, dden.spatial_variance(self._device_frame(guides), lum, float(self.s.phi_normal),
+                                                         active=short), var)
         var = var * dr.maximum(F(1.0), 4.0 / dr.maximum(hist, F(1.0)))
         dr.eval(var)
         return var, any_short

@@ -92,3 +92,25 @@ def test04_the_device_filter_copies_count_their_bytes(drjit_device, backend):
     px = 10 * 12
     assert up == px * (4 + 12 + 1) + px * (12 + 4)                  # depth, normals, validity; colour, variance
     assert down == px * (12 + 4 + 12)                                # colour, variance, the fed-back colour
+
+
+@pytest.mark.parametrize("backend", DRJIT)
+def test05_spatial_variance_of_some_pixels_is_the_whole_images_there_and_zero_elsewhere(drjit_device, backend):
+    """``active``: the pixels that need the estimate (A-SVGF's short histories). They get the whole image's values
+    bit for bit, the others 0, whether a packet holds a few such pixels or none (whole rows without any)."""
+    c, _, z, n, valid = _frame(29, 41, seed=11)
+    lum = denoise.luminance(c)
+    dev = drjit_device(backend)
+    frame = dden.DeviceFrame.from_host(dev, z, n, valid)
+    lum_dev = dev.to_device(lum.reshape(-1), dev.Float)
+    rng = np.random.default_rng(3)
+    active = rng.random((29, 41)) < 0.1
+    active[10:20] = False
+    active[25] = True
+    whole = dev.to_host(dden.spatial_variance(frame, lum_dev, 128.0, 2))
+    some = dev.to_host(dden.spatial_variance(frame, lum_dev, 128.0, 2,
+                                             active=dev.to_device(active.reshape(-1), dev.Bool)))
+    a = active.reshape(-1)
+    assert np.array_equal(some[a], whole[a]) and (some[~a] == 0).all()
+    assert (whole[a & valid.reshape(-1)] > 0).any()
+    _close(whole.reshape(29, 41), denoise.spatial_variance(lum, z, n, valid, 128.0, 2))

@@ -207,28 +207,38 @@ def atrous(frame: DeviceFrame, color, variance, settings: AtrousSettings = Atrou
     return c, v, tapped
 
 
-def spatial_variance(frame: DeviceFrame, lum, phi_normal: float = 128.0, radius: int = 2):
+def spatial_variance(frame: DeviceFrame, lum, phi_normal: float = 128.0, radius: int = 2, active=None):
     """:func:`suite.core.denoise.spatial_variance` on the device (``lum`` Float; the frame's depth and normals):
-    the luminance variance of a bilateral (2r + 1)^2 window, Float, 0 where not valid."""
+    the luminance variance of a bilateral (2r + 1)^2 window, Float, 0 where not valid. ``active`` (Bool): the pixels
+    that need it; the others get 0, and the window is summed only in the packets that hold such a pixel
+    (:meth:`~suite.core.device.context.Device.where_any`)."""
     dev = frame.device
     dr, F, F64 = dev.dr, dev.Float, dev.Float64
     grid = PixelGrid(dev, frame.width, frame.height)
     z, n, valid = frame.depth, frame.normal, frame.valid
-    fw64 = F64(dr.maximum(depth_fwidth(frame, grid), F(1e-3) * z))
     size = grid.w * grid.h
-    s1, s2, ws = dr.zeros(F64, size), dr.zeros(F64, size), dr.zeros(F64, size)
-    for dy, dx, q, inside in grid.window(radius):
-        near = F64(dr.abs(dr.gather(F, z, q, inside) - z)) < 2.0 * fw64 * float(max(abs(dx), abs(dy), 1))
-        dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
-        ok = inside & valid & dr.gather(dev.Bool, valid, q, inside) & near
-        wq = dr.select(ok, _pow(dev, dot, float(phi_normal)), 0.0)
-        lq = F64(dr.gather(F, lum, q, inside))
-        s1 = dr.select(inside, s1 + wq * lq, s1)
-        s2 = dr.select(inside, s2 + wq * lq * lq, s2)
-        ws = dr.select(inside, ws + wq, ws)
-    ws = dr.maximum(ws, 1e-12)
-    m = s1 / ws
-    out = F(dr.select(valid, dr.maximum(s2 / ws - m * m, 0.0), 0.0))
+
+    def window(todo):
+        fw64 = F64(dr.maximum(depth_fwidth(frame, grid), F(1e-3) * z))
+        s1, s2, ws = dr.zeros(F64, size), dr.zeros(F64, size), dr.zeros(F64, size)
+        for dy, dx, q, inside in grid.window(radius):
+            inside = inside & todo
+            near = F64(dr.abs(dr.gather(F, z, q, inside) - z)) < 2.0 * fw64 * float(max(abs(dx), abs(dy), 1))
+            dot = dr.maximum(F64(_dot32(n, dr.gather(dev.Vector3f, n, q, inside))), 0.0)
+            ok = inside & valid & dr.gather(dev.Bool, valid, q, inside) & near
+            wq = dr.select(ok, _pow(dev, dot, float(phi_normal)), 0.0)
+            lq = F64(dr.gather(F, lum, q, inside))
+            s1 = dr.select(inside, s1 + wq * lq, s1)
+            s2 = dr.select(inside, s2 + wq * lq * lq, s2)
+            ws = dr.select(inside, ws + wq, ws)
+        ws = dr.maximum(ws, 1e-12)
+        m = s1 / ws
+        return (F(dr.select(valid, dr.maximum(s2 / ws - m * m, 0.0), 0.0)),)
+
+    if active is None:
+        out, = window(dev.Bool(True))
+    else:
+        out, = dev.where_any(active, window, dr.zeros(F, size))
     dr.eval(out)
     return out
 
