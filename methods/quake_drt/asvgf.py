@@ -401,7 +401,7 @@ class ASVGF:
         if short.any():
             lum = luminance(illum.reshape(self.h, self.w, 3))
             var_s = denoise.spatial_variance(lum, guides.filter_depth, guides.filter_normal, guides.valid,
-                                             float(self.s.phi_normal))
+                                             float(self.s.phi_normal), active=short)  # only where it is taken
             var = np.where(short, var_s, var_t)
             if st is not None:
                 st.count(taps=self.h * self.w * 25)

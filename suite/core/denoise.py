@@ -83,17 +83,24 @@ def kernel(radius: int) -> list[float]:
     return [1.0, 0.5] if radius == 1 else [1.0, 2.0 / 3.0, 1.0 / 6.0]
 
 
-def _pow(x: np.ndarray, e: float) -> np.ndarray:
-    """x ** e for x >= 0; by repeated squaring when e is a whole number in [0, 4096] (128: 8 products)."""
-    if not (float(e).is_integer() and 0 <= e <= 4096):
-        return x ** e
-    r, b, k = np.ones_like(x), x, int(e)
+def _squarings(r, b, k: int):
+    """``r * b ** k`` by repeated squaring (arrays or, compiled, one value): the products of :func:`_pow`."""
     while k > 0:
         if k & 1:
             r = r * b
         b = b * b
         k >>= 1
     return r
+
+
+_squarings_jit = numba.njit(cache=True, nogil=True, inline="always")(_squarings)
+
+
+def _pow(x: np.ndarray, e: float) -> np.ndarray:
+    """x ** e for x >= 0; by repeated squaring when e is a whole number in [0, 4096] (128: 8 products)."""
+    if not (float(e).is_integer() and 0 <= e <= 4096):
+        return x ** e
+    return _squarings(np.ones_like(x), x, int(e))
 
 
 @dataclass
@@ -144,6 +151,15 @@ def atrous_pass_reference(c: np.ndarray, v: np.ndarray, z: np.ndarray, n: np.nda
 def _whole(e: float) -> int:
     """``e`` as the exponent :func:`_pow` squares by, or -1 where it takes ``x ** e``."""
     return int(e) if float(e).is_integer() and 0 <= e <= 4096 else -1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pow1(x, e, e_int):
+    """:func:`_pow` of one value: ``x ** e``, by repeated squaring where ``e_int`` (:func:`_whole` of ``e``) is not
+    -1."""
+    if e_int < 0:
+        return x ** e
+    return _squarings_jit(1.0, x, e_int)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -201,16 +217,7 @@ def _atrous_pass(c, v, z, n, fw, valid, step, r, kern, phi_c, phi_n, phi_n_int, 
                                          + n[y, x, 2] * n[yy, xx, 2])
                         if dot < 0.0:
                             dot = 0.0
-                        if phi_n_int < 0:
-                            p = dot ** phi_n
-                        else:
-                            p, b, k = 1.0, dot, phi_n_int
-                            while k > 0:
-                                if k & 1:
-                                    p = p * b
-                                b = b * b
-                                k >>= 1
-                        wq = math.exp(-wl - wz) * p * kern[abs(dx)] * kern[abs(dy)]
+                        wq = math.exp(-wl - wz) * _pow1(dot, phi_n, phi_n_int) * kern[abs(dx)] * kern[abs(dy)]
                     a0 += np.float64(c[yy, xx, 0]) * wq
                     a1 += np.float64(c[yy, xx, 1]) * wq
                     a2 += np.float64(c[yy, xx, 2]) * wq
@@ -259,17 +266,73 @@ def atrous_taps(width: int, height: int, settings: AtrousSettings) -> int:
     return int(width) * int(height) * (2 * int(settings.radius) + 1) ** 2 * int(settings.iterations)
 
 
+@numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")  # IEEE division, as numpy
+def _spatial_variance_at(lum, z, n, valid, fw64, phi_n, phi_n_int, r, active, out):
+    """:func:`spatial_variance_reference`'s expressions per pixel of ``active`` (the others keep ``out``'s 0), every
+    float operation in their order and precision: float32 depth difference and normal dot product, float64
+    weights and sums accumulated tap by tap in row-major order, taps outside the image skipped."""
+    h, w = lum.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            if not active[y, x]:
+                continue
+            s1, s2, ws = 0.0, 0.0, 0.0
+            for dy in range(-r, r + 1):
+                yy = y + dy
+                if yy < 0 or yy >= h:
+                    continue
+                for dx in range(-r, r + 1):
+                    xx = x + dx
+                    if xx < 0 or xx >= w:
+                        continue
+                    near = abs(z[yy, xx] - z[y, x]) < 2.0 * fw64[y, x] * max(abs(dx), abs(dy), 1)
+                    dot = np.float64(n[y, x, 0] * n[yy, xx, 0] + n[y, x, 1] * n[yy, xx, 1] + n[y, x, 2] * n[yy, xx, 2])
+                    if dot < 0.0:  # np.maximum(dot, 0): NaN stays NaN
+                        dot = 0.0
+                    wq = 0.0
+                    if valid[y, x] and valid[yy, xx] and near:
+                        wq = _pow1(dot, phi_n, phi_n_int)
+                    lq = np.float64(lum[yy, xx])
+                    s1 += wq * lq
+                    s2 += wq * lq * lq
+                    ws += wq
+            if ws < 1e-12:  # np.maximum(ws, 1e-12): NaN stays NaN
+                ws = 1e-12
+            m = s1 / ws
+            v = s2 / ws - m * m
+            if v < 0.0:
+                v = 0.0
+            out[y, x] = np.float32(v) if valid[y, x] else np.float32(0.0)
+
+
+def _variance_inputs(lum, depth, normal, valid):
+    """(lum, z, n, valid, fw64): the spatial variance's inputs in their dtypes and its depth tolerance per pixel."""
+    valid = np.ascontiguousarray(valid, bool)
+    z = np.ascontiguousarray(depth, np.float32)
+    n = np.ascontiguousarray(normal, np.float32)
+    lum = np.ascontiguousarray(lum, np.float32)
+    fw64 = np.maximum(depth_fwidth(z, valid), 1e-3 * z).astype(np.float32).astype(np.float64)
+    return lum, z, n, valid, fw64
+
+
 def spatial_variance(lum: np.ndarray, depth: np.ndarray, normal: np.ndarray, valid: np.ndarray,
-                     phi_normal: float = 128.0, radius: int = 2) -> np.ndarray:
+                     phi_normal: float = 128.0, radius: int = 2, active: np.ndarray | None = None) -> np.ndarray:
     """Luminance variance from a bilateral (2r + 1)^2 window (SVGF §4.2's spatial estimate where a pixel has too
     little history, q2vkpt's 5x5): taps weighted by ``max(0, n . n') ^ phi_normal``, and only those whose depth is
     within 2 depth derivatives per pixel of distance (|grad z| or 0.1 % of the depth, the larger). Float32 (H, W);
-    0 where not ``valid``."""
-    valid = np.asarray(valid, bool)
-    z = np.ascontiguousarray(depth, np.float32)
-    n = np.ascontiguousarray(normal, np.float32)
-    lum = np.asarray(lum, np.float32)
-    fw64 = np.maximum(depth_fwidth(z, valid), 1e-3 * z).astype(np.float32).astype(np.float64)
+    0 where not ``valid``. ``active`` ((H, W) bool, default every pixel): the pixels that need it (0 elsewhere).
+    A compiled pass, parallel over rows, with the bits of :func:`spatial_variance_reference`."""
+    lum, z, n, valid, fw64 = _variance_inputs(lum, depth, normal, valid)
+    out = np.zeros(lum.shape, np.float32)
+    active = np.ones(lum.shape, np.bool_) if active is None else np.ascontiguousarray(active, np.bool_)
+    _spatial_variance_at(lum, z, n, valid, fw64, float(phi_normal), _whole(phi_normal), int(radius), active, out)
+    return out
+
+
+def spatial_variance_reference(lum: np.ndarray, depth: np.ndarray, normal: np.ndarray, valid: np.ndarray,
+                               phi_normal: float = 128.0, radius: int = 2) -> np.ndarray:
+    """:func:`spatial_variance` of every pixel as whole-image numpy expressions, one per window tap."""
+    lum, z, n, valid, fw64 = _variance_inputs(lum, depth, normal, valid)
     h, w = lum.shape
     s1, s2, ws = np.zeros((h, w)), np.zeros((h, w)), np.zeros((h, w))
     for dy in range(-radius, radius + 1):

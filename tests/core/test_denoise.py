@@ -127,3 +127,45 @@ def test07_the_compiled_pass_gives_the_bits_of_the_numpy_reference(radius, phi_n
     out_c, out_v = denoise.atrous_pass(c, v, z, n, fw, valid, step, s)
     assert out_c.dtype == np.float32 and out_v.dtype == np.float32
     assert np.array_equal(out_c, ref_c) and np.array_equal(out_v, ref_v)
+
+
+@pytest.mark.parametrize("radius, phi_normal", [(2, 128.0), (1, 17.5), (2, 0.0)])
+def test08_spatial_variance_of_some_pixels_has_the_bits_of_the_whole_image(radius, phi_normal):
+    # the compiled pass gives the bits of the whole-image numpy expressions, over every pixel or over ``active``
+    # ones (A-SVGF's short histories; 0 elsewhere): random guides with holes and a depth step, whole and
+    # fractional normal exponents, an image edge in every window of the border pixels, a NaN luminance and a NaN
+    # normal
+    rng = np.random.default_rng(int(phi_normal) + radius)
+    h, w = 23, 31
+    lum = (rng.gamma(1.0, 1.0, (h, w))).astype(np.float32)
+    lum[5, 7] = np.nan
+    z = (rng.random((h, w)) * 0.05 + 2.0 + 3.0 * (np.arange(w) > w // 2)).astype(np.float32)
+    n = rng.normal(size=(h, w, 3)).astype(np.float32)
+    n[rng.random((h, w)) < 0.6] = (0.0, 0.0, 1.0)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[9, 12] = np.nan
+    valid = rng.random((h, w)) > 0.15
+    valid[9, 12] = valid[9, 13] = True
+    active = rng.random((h, w)) < 0.3
+    active[9, 13] = True
+    active[0] = active[:, -1] = True
+    whole = denoise.spatial_variance_reference(lum, z, n, valid, phi_normal, radius)
+    some = denoise.spatial_variance(lum, z, n, valid, phi_normal, radius, active=active)
+    every = denoise.spatial_variance(lum, z, n, valid, phi_normal, radius)
+    assert some.dtype == np.float32 and every.dtype == np.float32
+    same = lambda a, b: (a == b) | (np.isnan(a) & np.isnan(b))  # noqa: E731
+    assert same(every, whole).all()
+    assert same(some, whole)[active].all() and (some[~active] == 0).all()
+    assert np.isnan(whole).any() and (whole[active & valid] > 0).any()
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (2, 5), (5, 2)])
+def test09_spatial_variance_of_images_smaller_than_the_window(h, w):
+    rng = np.random.default_rng(h * 10 + w)
+    lum = rng.random((h, w)).astype(np.float32)
+    z = (rng.random((h, w)) * 0.01 + 2.0).astype(np.float32)
+    n = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (h, w, 1))
+    valid = np.ones((h, w), bool)
+    ref = denoise.spatial_variance_reference(lum, z, n, valid)
+    assert np.array_equal(denoise.spatial_variance(lum, z, n, valid), ref)
+    assert (ref > 0).any() or h * w == 1
