@@ -53,6 +53,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from methods.quake_drt.primary import barycentric_points
 from methods.quake_drt.rng import tea_np
 from suite.core import denoise
 from suite.core.denoise import depth_fwidth, luminance, shifted
@@ -221,8 +222,7 @@ class ASVGF:
             return empty
         prim = self.prev["prim"][prev_pix]
         u, v = self.prev["u"][prev_pix], self.prev["v"][prev_pix]
-        tri = scene.positions_at(t_s)[scene.faces[prim]].astype(np.float64)
-        pts = (tri * np.stack([1.0 - u - v, u, v], axis=-1)[..., None]).sum(axis=1)
+        pts = barycentric_points(scene.positions_at(t_s)[scene.faces[prim]].astype(np.float64), u, v)
         pose = scene.camera.pose_at(t_s)
         xy, z = project(pts, pose, scene.camera.fov_deg, w, h)
         ok = (z > 0) & (xy[:, 0] >= 0) & (xy[:, 0] < w) & (xy[:, 1] >= 0) & (xy[:, 1] < h)

@@ -65,15 +65,12 @@ def shading_samples(scene, tracer, t_s: float, width: int, height: int, seeds: n
 
 def _kernel(dev, ops, seeds, width: int, height: int) -> dict:
     """The samples' fields from the frame's scalars (:func:`shading_samples`), evaluated in one kernel."""
-    from suite.core.device.gbuffer import hit_surface
+    from suite.core.device.gbuffer import hit_surface, row_col
 
-    dr, F, F64, U = dev.dr, dev.Float, dev.Float64, dev.UInt32
+    dr, F, F64 = dev.dr, dev.Float, dev.Float64
     w, h, tan_x, aspect = ops[0:4]
     fwd, right, up = ops[4:7], ops[7:10], ops[10:13]
-    idx = dev.arange(width * height)
-    w_u = dev.opaque(U, width)  # read from memory: no recompilation per resolution in the index arithmetic
-    row = idx // w_u
-    col = idx - row * w_u
+    row, col = row_col(dev, dev.arange(width * height), width)  # the width read from memory: one kernel for all
     jx = _uniform(dev, seeds, DIM_JITTER_X) - 0.5
     jy = _uniform(dev, seeds, DIM_JITTER_Y) - 0.5
     # primary._camera: the float64 operations in its order (divisions by values in memory stay divisions)

@@ -565,6 +565,12 @@ def _patch_gbuffer(g, rows: np.ndarray, sub: Surface, scene) -> None:
         flat(g.kind)[rows] = np.where(sub.valid, codes[np.maximum(sub.material, 0)], -1)
 
 
+def barycentric_points(tri: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(N, 3) ``(t0 (1 - u - v) + t1 u) + t2 v`` of (N, 3, 3) triangles: the bits of ``(tri * w).sum(axis=1)``
+    (numpy adds the three rows in order) without its (N, 3, 3) temporaries."""
+    return (tri[:, 0] * (1.0 - u - v)[:, None] + tri[:, 1] * u[:, None]) + tri[:, 2] * v[:, None]
+
+
 def forwarded_surface(scene, t_s: float, s: Surface, rows: np.ndarray, prim: np.ndarray, u: np.ndarray,
                       v: np.ndarray) -> None:
     """A-SVGF forward projection (Schied et al. 2018 §4.1; seed 001 Table 6.10 "Object Forward"): the pixels
@@ -573,9 +579,7 @@ def forwarded_surface(scene, t_s: float, s: Surface, rows: np.ndarray, prim: np.
     if len(rows) == 0:
         return
     positions = scene.positions_at(t_s)
-    tri = positions[scene.faces[prim]].astype(np.float64)
-    w = np.stack([1.0 - u - v, u, v], axis=-1)[..., None]
-    p = (tri * w).sum(axis=1)
+    p = barycentric_points(positions[scene.faces[prim]].astype(np.float64), u, v)
     o = np.broadcast_to(np.asarray(scene.camera.pose_at(t_s).position, np.float64), p.shape)
     d = p - o
     t = np.linalg.norm(d, axis=1)

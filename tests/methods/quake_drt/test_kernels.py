@@ -292,3 +292,18 @@ def test11_row_assignment_and_shading_point_joins_equal_numpys():
     two = direct.ShadingPoints.concat([one, one])
     assert len(two) == 8 and np.array_equal(two.p, np.concatenate([one.p, one.p]))
     assert len(direct.ShadingPoints.concat([None, direct.ShadingPoints.empty()])) == 0
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test12_barycentric_points_are_the_bits_of_the_weighted_sum(dtype):
+    """The forward projection's points (``primary.barycentric_points``) without (N, 3, 3) temporaries: the bits of
+    numpy's ``(tri * w).sum(axis=1)``, which adds the three weighted corners in order, for float32 and float64
+    barycentrics."""
+    from methods.quake_drt.primary import barycentric_points
+
+    rng = np.random.default_rng(5)
+    tri = rng.normal(size=(4097, 3, 3)) * 1e3
+    u, v = (rng.random(4097) * 0.5).astype(dtype), (rng.random(4097) * 0.5).astype(dtype)
+    want = (tri * np.stack([1.0 - u - v, u, v], axis=-1)[..., None]).sum(axis=1)
+    got = barycentric_points(tri, u, v)
+    assert got.dtype == np.float64 and np.array_equal(got, want)
