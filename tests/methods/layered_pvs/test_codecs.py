@@ -1,4 +1,6 @@
 """Seed 002's lossless codecs decode exactly; 'any' pixels may take either value; corrupt input is refused."""
+import struct
+
 import numpy as np
 import pytest
 
@@ -98,3 +100,28 @@ def test09_pvs_patch_against_wrong_state_is_refused():
     patch, _ = c.pvs_patch_encode(st, np.arange(20, 80), faces, positions)
     with pytest.raises(c.CodecError):
         c.pvs_patch_decode(c.PVSState(), patch)
+
+
+@pytest.mark.parametrize("shape", [(0, 0), (0, 5), (1, 1), (1, 70), (70, 1), (33, 65), (64, 64), (129, 40)])
+@pytest.mark.parametrize("p_any", [0.0, 0.3, 1.0])
+def test10_compiled_quadtree_codec_gives_the_reference_bytes_and_masks(shape, p_any):
+    """The compiled quadtree encoder and decoder against their whole-level numpy twins: the same bytes, the same masks,
+    the same refusal of a payload cut short or announcing too few or too many bits."""
+    rng = np.random.default_rng(shape[0] * 131 + shape[1] + int(10 * p_any))
+    m = _ternary(rng, shape, p_any) if shape[0] else np.zeros(shape, np.int8)
+    enc = c.quadtree_encode(m)
+    assert enc == c.quadtree_encode_reference(m)
+    dec = c.quadtree_decode(enc, shape)
+    assert dec.dtype == np.uint8 and np.array_equal(dec, c.quadtree_decode_reference(enc, shape))
+    h, w, n = struct.unpack_from("<HHI", enc)
+    broken = [enc[:-1], enc[:9]] + [struct.pack("<HHI", h, w, n + dn) + enc[8:] + b"\0" for dn in (-1, 1, -n)]
+
+    def outcome(decode, payload):
+        try:
+            return "mask", decode(payload).tobytes()
+        except c.CodecError as e:
+            return "error", str(e)
+
+    outcomes = [outcome(c.quadtree_decode, payload) for payload in broken]
+    assert outcomes == [outcome(c.quadtree_decode_reference, payload) for payload in broken]
+    assert sum(kind == "error" for kind, _ in outcomes) >= 2
