@@ -166,6 +166,12 @@ def reproject(dev, w: int, h: int, cur: dict, tol, prev: dict, cam_prev):
     ex, ey, ez = p.x - cam[0], p.y - cam[1], p.z - cam[2]
     expect = dr.sqrt(ex * ex + ey * ey + ez * ez)
     n = cur["normal"]
+    # The history as rows of eight (colour, moments, length, depth, validity) and its normals as rows of four: a tap
+    # reads each with one packet gather instead of a gather per value (the same values).
+    pc, pn = prev["color"], prev["normal"]
+    hist_rows = float_rows(dev, pc.x, pc.y, pc.z, prev["moments"][0], prev["moments"][1], prev["hist"],
+                           prev["depth"], dr.select(prev["valid"], F(1.0), F(0.0)))
+    normal_rows = float_rows(dev, pn.x, pn.y, pn.z, dr.zeros(F, w * h))
     c = [dr.zeros(F64, w * h) for _ in range(6)]  # colour, moments, history length
     ws = dr.zeros(F64, w * h)
     for k in range(4):
@@ -174,14 +180,12 @@ def reproject(dev, w: int, h: int, cur: dict, tol, prev: dict, cam_prev):
         tx, ty = I32(dr.select(valid, lx, 0.0)) + ox, I32(dr.select(valid, ly, 0.0)) + oy
         inside = valid & (tx >= 0) & (tx < w) & (ty >= 0) & (ty < h)
         j = _index(dev, dr.select(inside, ty, 0), dr.select(inside, tx, 0), w)
-        ok = inside & dr.gather(dev.Bool, prev["valid"], j, inside)
-        ok &= ~(dr.abs(F64(dr.gather(F, prev["depth"], j, ok)) - expect) > F64(tol))
-        pn = dr.gather(dev.Vector3f, prev["normal"], j, ok)
-        ok &= ~(((pn.x * n.x + pn.y * n.y) + pn.z * n.z) <= 0.5)
-        pc = dr.gather(dev.Vector3f, prev["color"], j, ok)
-        vals = (pc.x, pc.y, pc.z, dr.gather(F, prev["moments"][0], j, ok), dr.gather(F, prev["moments"][1], j, ok),
-                dr.gather(F, prev["hist"], j, ok))
-        c = [dr.select(ok, a + F64(v) * wt, a) for a, v in zip(c, vals)]
+        r = read_rows(dev, hist_rows, j, 8, inside)
+        ok = inside & (r[7] != 0.0)
+        ok &= ~(dr.abs(F64(r[6]) - expect) > F64(tol))
+        q = read_rows(dev, normal_rows, j, 4, ok)
+        ok &= ~(((q[0] * n.x + q[1] * n.y) + q[2] * n.z) <= 0.5)
+        c = [dr.select(ok, a + F64(v) * wt, a) for a, v in zip(c, r[0:6])]
         ws = dr.select(ok, ws + wt, ws)
     reprojected = valid & (ws > 1e-3)
     zero = F(0.0)
