@@ -319,22 +319,38 @@ def byte_rle_decode(payload: bytes, expected_len: int | None = None) -> np.ndarr
 
 # ------------------------------------------------------------------------------------------ quadtree
 
-_quadtree_kernel = None
+_quadtree_kernels = None
 
 
-def _quadtree_bits():
-    """The compiled traversal of :func:`quadtree_encode_reference`: ``bits(mask, side) -> (N,) uint8`` of a ternary
-    mask padded with 'any' to a square of side 2^k. The pyramid of 'holds a 1' / 'holds a 0' flags, then level by level from the root the split bits
-    of the reached nodes and the value bits of the unsplit ones, each in row-major order."""
-    global _quadtree_kernel
-    if _quadtree_kernel is None:
+def _quadtree_passes():
+    """The compiled passes of the quadtree codec, ``(bits, fill)``, sharing the step from one level's split nodes to
+    the next level's reached nodes:
+
+    * ``bits(mask, levels) -> (N,) uint8``: :func:`quadtree_encode_reference`'s bits of a ternary mask padded with
+      'any' to a square of side ``2^levels``: the pyramid of 'holds a 1' / 'holds a 0' flags, then level by level
+      from the root the split bits of the reached nodes and the value bits of the unsplit ones, each in row-major
+      order;
+    * ``fill(bits, levels, out) -> bits read`` (-1: the split bits run out, -2: the value bits):
+      :func:`quadtree_decode_reference`'s reading, writing every leaf's value into the pixels of ``out`` it covers."""
+    global _quadtree_kernels
+    if _quadtree_kernels is None:
         import numba
 
         @numba.njit(cache=True, nogil=True)
-        def bits(m, side):
-            levels = 0
-            while (1 << levels) < side:
-                levels += 1
+        def children(split, s):
+            """The (2s)^2 nodes of the next level reached through the split ones of an s x s level."""
+            nxt = np.zeros(4 * s * s, np.bool_)
+            for i in range(s):
+                for j in range(s):
+                    if split[i * s + j]:
+                        for di in range(2):
+                            for dj in range(2):
+                                nxt[(2 * i + di) * (2 * s) + 2 * j + dj] = True
+            return nxt
+
+        @numba.njit(cache=True, nogil=True)
+        def bits(m, levels):
+            side = 1 << levels
             offset = np.zeros(levels + 2, np.int64)  # level l's flags at offset[l]: (side >> l)^2 of them
             for lv in range(levels + 1):
                 offset[lv + 1] = offset[lv] + (side >> lv) * (side >> lv)
@@ -356,34 +372,58 @@ def _quadtree_bits():
             active = np.ones(1, np.bool_)
             for lv in range(levels, -1, -1):
                 s, a = side >> lv, offset[lv]
+                split = active & h1[a:a + s * s] & h0[a:a + s * s] if lv > 0 else np.zeros(s * s, np.bool_)
                 if lv > 0:
                     for k in range(s * s):
                         if active[k]:
-                            out[n] = h1[a + k] and h0[a + k]
+                            out[n] = split[k]
                             n += 1
                 for k in range(s * s):
-                    if active[k] and (lv == 0 or not (h1[a + k] and h0[a + k])):
+                    if active[k] and not split[k]:
                         out[n] = h1[a + k]
                         n += 1
                 if lv > 0:
-                    nxt = np.zeros(4 * s * s, np.bool_)
-                    for i in range(s):
-                        for j in range(s):
-                            k = i * s + j
-                            if active[k] and h1[a + k] and h0[a + k]:
-                                for di in range(2):
-                                    for dj in range(2):
-                                        nxt[(2 * i + di) * (2 * s) + 2 * j + dj] = True
-                    active = nxt
+                    active = children(split, s)
             return out[:n]
 
-        _quadtree_kernel = bits
-    return _quadtree_kernel
+        @numba.njit(cache=True, nogil=True)
+        def fill(bits, levels, out):
+            h, w = out.shape
+            side = 1 << levels
+            nbits = bits.shape[0]
+            pos = 0
+            active = np.ones(1, np.bool_)
+            for lv in range(levels, -1, -1):
+                s = side >> lv
+                split = np.zeros(s * s, np.bool_)
+                if lv > 0:
+                    for k in range(s * s):
+                        if active[k]:
+                            if pos >= nbits:
+                                return -1
+                            split[k] = bits[pos] != 0
+                            pos += 1
+                for k in range(s * s):
+                    if active[k] and not split[k]:
+                        if pos >= nbits:
+                            return -2
+                        if bits[pos]:
+                            y0, x0 = (k // s) << lv, (k % s) << lv
+                            for y in range(y0, min(y0 + (1 << lv), h)):
+                                for x in range(x0, min(x0 + (1 << lv), w)):
+                                    out[y, x] = 1
+                        pos += 1
+                if lv > 0:
+                    active = children(split, s)
+            return pos
+
+        _quadtree_kernels = (bits, fill)
+    return _quadtree_kernels
 
 
-def _quadtree_side(h: int, w: int) -> int:
-    """The side 2^k of the square a quadtree mask is padded to."""
-    return 1 << max(int(np.ceil(np.log2(max(h, w, 1)))), 0)
+def _quadtree_levels(h: int, w: int) -> int:
+    """k: a quadtree mask is padded to a square of side 2^k."""
+    return max(int(np.ceil(np.log2(max(h, w, 1)))), 0)
 
 
 def quadtree_encode(mask: np.ndarray) -> bytes:
@@ -394,7 +434,7 @@ def quadtree_encode(mask: np.ndarray) -> bytes:
     pass with the bits of :func:`quadtree_encode_reference`."""
     m = np.ascontiguousarray(mask, np.int8)
     h, w = m.shape
-    allbits = _quadtree_bits()(m, _quadtree_side(h, w))
+    allbits = _quadtree_passes()[0](m, _quadtree_levels(h, w))
     return struct.pack("<HHI", h, w, len(allbits)) + np.packbits(allbits).tobytes()
 
 
@@ -402,7 +442,7 @@ def quadtree_encode_reference(mask: np.ndarray) -> bytes:
     """:func:`quadtree_encode` as whole-level numpy expressions."""
     m = np.asarray(mask, np.int8)
     h, w = m.shape
-    side = _quadtree_side(h, w)
+    side = 1 << _quadtree_levels(h, w)
     full = np.full((side, side), ANY, np.int8)
     full[:h, :w] = m
     has1 = [full == 1]
@@ -443,9 +483,8 @@ def quadtree_decode(payload: bytes, expected_shape=None) -> np.ndarray:
     :func:`quadtree_decode_reference`); :class:`CodecError` on a short, truncated or inconsistent payload."""
     h, w, nbits = _quadtree_header(payload, expected_shape)
     bits = np.unpackbits(np.frombuffer(payload, np.uint8, len(payload) - 8, 8))[:nbits]
-    side = _quadtree_side(h, w)
     out = np.zeros((h, w), np.uint8)
-    status = _quadtree_fill()(bits, side, out)
+    status = _quadtree_passes()[1](bits, _quadtree_levels(h, w), out)
     if status < 0:
         raise CodecError(("quadtree mask truncated in its split bits", "quadtree mask truncated in its value bits")
                          [-status - 1])
@@ -454,66 +493,11 @@ def quadtree_decode(payload: bytes, expected_shape=None) -> np.ndarray:
     return out
 
 
-_quadtree_fill_kernel = None
-
-
-def _quadtree_fill():
-    """The compiled reading of :func:`quadtree_decode_reference`: ``fill(bits, side, out) -> bits read`` (-1: the
-    split bits run out, -2: the value bits), writing every leaf's value into the pixels of ``out`` it covers."""
-    global _quadtree_fill_kernel
-    if _quadtree_fill_kernel is None:
-        import numba
-
-        @numba.njit(cache=True, nogil=True)
-        def fill(bits, side, out):
-            h, w = out.shape
-            nbits = bits.shape[0]
-            levels = 0
-            while (1 << levels) < side:
-                levels += 1
-            pos = 0
-            active = np.ones(1, np.bool_)
-            for lv in range(levels, -1, -1):
-                s = side >> lv
-                split = np.zeros(s * s, np.bool_)
-                if lv > 0:
-                    for k in range(s * s):
-                        if active[k]:
-                            if pos >= nbits:
-                                return -1
-                            split[k] = bits[pos] != 0
-                            pos += 1
-                for k in range(s * s):
-                    if active[k] and not split[k]:
-                        if pos >= nbits:
-                            return -2
-                        if bits[pos]:
-                            y0, x0 = (k // s) << lv, (k % s) << lv
-                            for y in range(y0, min(y0 + (1 << lv), h)):
-                                for x in range(x0, min(x0 + (1 << lv), w)):
-                                    out[y, x] = 1
-                        pos += 1
-                if lv > 0:
-                    nxt = np.zeros(4 * s * s, np.bool_)
-                    for i in range(s):
-                        for j in range(s):
-                            if split[i * s + j]:
-                                for di in range(2):
-                                    for dj in range(2):
-                                        nxt[(2 * i + di) * (2 * s) + 2 * j + dj] = True
-                    active = nxt
-            return pos
-
-        _quadtree_fill_kernel = fill
-    return _quadtree_fill_kernel
-
-
 def quadtree_decode_reference(payload: bytes, expected_shape=None) -> np.ndarray:
     """:func:`quadtree_decode` as whole-level numpy expressions."""
     h, w, nbits = _quadtree_header(payload, expected_shape)
     bits = np.unpackbits(np.frombuffer(payload, np.uint8, len(payload) - 8, 8))[:nbits].astype(bool)
-    side = _quadtree_side(h, w)
-    levels = int(np.log2(side))
+    levels = _quadtree_levels(h, w)
     pos = 0
     active = np.ones((1, 1), bool)
     value = np.zeros((1, 1), bool)

@@ -844,8 +844,7 @@ def fragments(dev, layers, origins64: np.ndarray | None, dirs64: np.ndarray | No
     valid = dr.full(dev.Bool, True, n)
     hit = hit_surface(dev, prim, u, v, valid, o, d, d)
     tables = dev.tables
-    emission = dr.select(hit.front, dr.gather(dev.Vector3f, tables.emission, hit.mat, valid), 0.0) \
-        if tables.any_emissive else dr.zeros(dev.Vector3f, n)
+    emission = tables.front_emission(hit.mat, hit.front)
     fields = [hit.position, hit.ng, hit.ns, hit.albedo, emission] + ([d] if view_dir is None else [])
     # the twins evaluated in the kernel that makes the copies (else the path tracer's first read computes them again)
     host = dev.to_host_all(fields, [np.float64, np.float64, np.float64, np.float32, np.float32, np.float64],

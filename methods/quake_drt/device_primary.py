@@ -86,8 +86,7 @@ def _kernel(dev, ops, seeds, width: int, height: int) -> dict:
     hit = hit_surface(dev, prim, u, v, valid, ray_o, d64, d64, bary64=True)
     zero3, zero3d = dev.Vector3f(0.0, 0.0, 0.0), dev.Vector3d(0.0, 0.0, 0.0)
     tables = dev.tables
-    emission = dr.select(valid & hit.front, dr.gather(dev.Vector3f, tables.emission, hit.mat, valid), zero3) \
-        if tables.any_emissive else dr.zeros(dev.Vector3f, width * height)
+    emission = tables.front_emission(hit.mat, valid & hit.front)
     out = {"prim": prim, "u": u, "v": v, "t": dr.select(valid, F64(t), dr.inf), "d": d64,
            "p": dr.select(valid, dev.Vector3d(hit.position), zero3d), "ng": dr.select(valid, hit.ng_raw, zero3d),
            "ns": dr.select(valid, hit.ns_raw, zero3d), "ng_view": dr.select(valid, hit.ng, zero3d),

@@ -261,7 +261,7 @@ def chains(tracer, rows, scene, t_s: float, surface, max_depth: int, skip_faces,
         # one kernel for every field the gathers below read (a gather evaluates its source on its own)
         dev.eval(sf.position, sf.ng, sf.ns, sf.ng_raw, sf.ns_raw, sf.albedo, mat, sf.front, r["length"])
         if tables.any_emissive:
-            em = dr.select(sf.front, dr.gather(dev.Vector3f, tables.emission, mat), dev.Vector3f(0.0))
+            em = tables.front_emission(mat, sf.front)
             glow = dr.compress((em.x > 0) | (em.y > 0) | (em.z > 0))
             if dr.width(glow):
                 em = V3(dr.gather(dev.Vector3f, em, glow))

@@ -532,6 +532,7 @@ def _set_rows(s: Surface, rows: np.ndarray, sub: Surface) -> None:
     for f in ("valid", "prim", "u", "v", "p", "ng", "ns", "ng_view", "ns_view", "albedo", "emission", "material",
               "o", "d", "t"):
         put_rows(getattr(s, f), rows, getattr(sub, f))
+    # overlay colour and transmittance are filled by _blend_overlays
 
 
 def put_rows(dst: np.ndarray, rows: np.ndarray, src: np.ndarray) -> None:
@@ -542,7 +543,6 @@ def put_rows(dst: np.ndarray, rows: np.ndarray, src: np.ndarray) -> None:
         dst.view(row)[rows, 0] = np.ascontiguousarray(src).view(row)[:, 0]
     else:
         dst[rows] = src
-    # overlay colour and transmittance are filled by _blend_overlays
 
 
 def _patch_gbuffer(g, rows: np.ndarray, sub: Surface, scene) -> None:

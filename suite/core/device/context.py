@@ -720,6 +720,15 @@ class SceneTables:
         y = (dev.Float64(uv[0].y) * w[0] + dev.Float64(uv[1].y) * w[1]) + dev.Float64(uv[2].y) * w[2]
         return x, y
 
+    def front_emission(self, mat, front):
+        """Vector3f: the radiance of materials ``mat`` toward rays that met their emitting side (``front``), 0 elsewhere
+        and in a scene without emitters."""
+        dev, dr = self.dev, self.dev.dr
+        if not self.any_emissive:
+            return dr.zeros(dev.Vector3f, dr.width(mat))
+        return dr.select(front, dr.gather(dev.Vector3f, self.emission, dr.maximum(mat, 0), front),
+                         dev.Vector3f(0.0, 0.0, 0.0))
+
     def tested_face(self, prim, active):
         """Bool: the hit lies on a face whose material is alpha-tested (one gather of a per-face flag)."""
         dev, dr = self.dev, self.dev.dr

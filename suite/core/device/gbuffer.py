@@ -267,8 +267,7 @@ def render_gbuffer(scene, tracer, t_s: float, resolution=None, prev_t_s: float |
     g.material = dr.select(g.valid, dr.gather(I, tables.face_material, dr.maximum(g.prim, 0), g.valid), -1)
     g.front = out.get("front")
     if g.front is not None:
-        g.emission = dr.select(g.front, dr.gather(dev.Vector3f, tables.emission, dr.maximum(g.material, 0), g.front),
-                               dev.Vector3f(0.0, 0.0, 0.0))
+        g.emission = tables.front_emission(g.material, g.front)
     g.rays = n if traced is None else dev.sum_u32(traced)
     tracer.counters["rays_intersect"] += g.rays
     g.stage_ms = stage_ms
