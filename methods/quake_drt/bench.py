@@ -9,21 +9,22 @@ running anything:
     ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and secondary
     stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus
     anti-aliased shading rays, attributes, overlays; on a Dr.Jit backend both are device kernels,
-    methods/quake_drt/device_primary.py) against the raw closest-hit query on its two camera ray sets;
-    the direct stage (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion
-    query on the rays it generated (captured from an untimed run; on a Dr.Jit backend the stage is the device kernel
-    of methods/quake_drt/device_direct.py, and its rays are recorded per iteration of its loop over light samples,
-    in the order it traces them); the secondary stage (mirror, glass and water
-    chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced (recorded
-    in an untimed run; where the chains run on the device, methods/quake_drt/device_secondary.py, they record their
-    rays there). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded
-    once, outside the timed calls); the numpy-fed raw entry points are timed beside it (``raw_numpy_ms``,
-    ``ratio_numpy``). The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena
-    benchmark levels have none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry
-    names the scene. Settings: the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct
-    stage has work. ``by_pixels``: each stage's ms and ratio at that size and at the ``--rays-larger`` sizes (a
-    stage's fixed costs weigh less as the pixels grow). ``on_devices``: the same at ``--resolution`` on each Dr.Jit
-    backend of ``--device`` beside ``--backend`` (what the device path, and a GPU where there is one, changes).
+    methods/quake_drt/device_primary.py) against the raw closest-hit query on its two camera ray sets; the direct stage
+    (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
+    generated (captured from an untimed run; on a Dr.Jit backend the stage is the device kernel of
+    methods/quake_drt/device_direct.py, and its rays are recorded per iteration of its loop over light samples, in the
+    order it traces them; ``light_samples`` counts the samples it evaluated, of which only those above the point's
+    horizon and in front of their emitter trace a ray, the rays raw traces); the secondary stage (mirror, glass and
+    water chains to depth 5, all branches) against the raw closest-hit query on the continuation rays it traced
+    (recorded in an untimed run; where the chains run on the device, methods/quake_drt/device_secondary.py, they record
+    their rays there). On a Mitsuba llvm/cuda backend raw is the backend on those rays in device memory (uploaded once,
+    outside the timed calls); the numpy-fed raw entry points are timed beside it (``raw_numpy_ms``, ``ratio_numpy``).
+    The secondary stage needs specular surfaces in view: on a scene without them (the OpenArena benchmark levels have
+    none) it is measured on :data:`SECONDARY_SCENE` at the same resolution, and its entry names the scene. Settings:
+    the paper's pipeline with every culled light (``num_random_dl`` 0), so the direct stage has work. ``by_pixels``:
+    each stage's ms and ratio at that size and at the ``--rays-larger`` sizes (a stage's fixed costs weigh less as the
+    pixels grow). ``on_devices``: the same at ``--resolution`` on each Dr.Jit backend of ``--device`` beside
+    ``--backend`` (what the device path, and a GPU where there is one, changes).
 ``asvgf``
     Milliseconds of each denoiser stage (Table 6.9: gradient, gradient a-trous, temporal, variance, a-trous) and of
     TAA at several resolutions, on frames the renderer made (the third frame of a paused camera, so the history
@@ -196,7 +197,8 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     o_all = np.concatenate([c[0] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     d_all = np.concatenate([c[1] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     l_all = np.concatenate([c[2] for c in chunks]) if chunks else np.zeros(0, np.float32)
-    dir_rays = f.rays(lambda: f.direct(raw))
+    stats = []  # the stage's counters: its light samples
+    dir_rays = f.rays(lambda: stats.append(f.direct(raw)[1]))
     if len(o_all):
         log = [("o", *c) for c in captured if len(c) == 3]
         timed = _against_raw(lambda: f.direct(raw), log, tracer, repeats,
@@ -206,7 +208,7 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
         out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3),
                          "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
-    out["direct"].update(repeats=repeats, shadow_rays=int(len(o_all)))
+    out["direct"].update(repeats=repeats, shadow_rays=int(len(o_all)), light_samples=int(stats[0].selected))
     out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, short, backend)
     return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
             "num_random_dl 0 (every culled light), antialiasing on", **out}
@@ -519,9 +521,10 @@ def format_results(out: dict) -> str:
                 continue
             where = f"   on {s['scene']}" if s.get("scene", r["scene"]) != r["scene"] else ""
             numpy_fed = f" (numpy-fed raw: {s['ratio_numpy']:.3f})" if "ratio_numpy" in s else ""
-            lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays)   raw "
-                         f"{s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio {s['ratio']:.3f}"
-                         f"{numpy_fed}   median of {s.get('repeats', r['repeats'])}{where}")
+            samples = f", {s['light_samples']:,} light samples" if "light_samples" in s else ""
+            lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays"
+                         f"{samples})   raw {s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio "
+                         f"{s['ratio']:.3f}{numpy_fed}   median of {s.get('repeats', r['repeats'])}{where}")
         for row in r.get("by_pixels", [])[1:]:  # the first is the table above
             lines.append(f"  at {row['resolution'][0]}x{row['resolution'][1]}: "
                          + "   ".join(f"{st} {row[st + '_ratio']:.3f}" for st in ("primary", "secondary", "direct")

@@ -490,6 +490,16 @@ def _ratio_goal_text(rows: list) -> str:
     return head + f"met by {', '.join(ok)}; not met by {', '.join(short)}."
 
 
+def _samples_text(r: dict) -> str:
+    """How many light samples the direct stage evaluated for its shadow rays (the work raw does not do)."""
+    d = r.get("direct", {})
+    if not d.get("light_samples") or not d.get("rays"):
+        return ""
+    return (f" The direct stage evaluated {d['light_samples']:,} light samples for its {d['rays']:,} shadow rays: a "
+            "sample whose light lies below the point's horizon or behind a one-sided emitter costs its choice and "
+            "geometry but traces no ray, and raw traces only the rays.")
+
+
 def _bench_part(bench, files: SectionFiles) -> str:
     out = ["<h4>Benchmarks</h4>"]
     if not bench:
@@ -505,7 +515,7 @@ def _bench_part(bench, files: SectionFiles) -> str:
                             f", {r.get('settings', '')}, medians of each stage's repeats")
                    + "<p>Bench: rays per second of the tracing stages against the backend's raw query on the same "
                      "rays (the secondary stage on a scene with mirrors and glass when the benchmark's level has "
-                     "none; its scene column says where). " + esc(_ratio_goal_text(rows))
+                     "none; its scene column says where). " + esc(_ratio_goal_text(rows) + _samples_text(r))
                    + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))
         if len(r.get("by_pixels", [])) > 1:
             bp = pd.DataFrame(r["by_pixels"])

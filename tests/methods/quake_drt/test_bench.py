@@ -18,6 +18,9 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert {"rays", "asvgf", "lights", "packages", "host"} <= set(doc)
     r = doc["rays"]
     assert r["direct"]["rays"] == r["direct"]["raw_rays"] > 0 and r["primary"]["rays"] > 0
+    # every shadow ray is one light sample; the samples below a point's horizon (the ceiling's, under its room's
+    # lights) trace none
+    assert r["direct"]["light_samples"] > r["direct"]["shadow_rays"] == r["direct"]["raw_rays"]
     # two_rooms has no mirror or glass: the secondary stage is measured on the gallery, and says so
     sec = r["secondary"]
     assert sec["scene"] == bench.SECONDARY_SCENE and sec["specular_pixels"] > 0

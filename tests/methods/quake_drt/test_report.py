@@ -72,7 +72,7 @@ def stored(tmp_path):
                 "repeats": 11, **kw}
 
     bench["rays"] = {"scene": SCENE, "backend": "embree", "resolution": [320, 180], "repeats": 3, "settings": "s",
-                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"), "direct": stage(0.99),
+                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"), "direct": stage(0.99, light_samples=1600),
                      "by_pixels": [{"resolution": [320, 180], "primary_ms": 2.0, "primary_ratio": 0.91},
                                    {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}],
                      "on_devices": [{"backend": "mitsuba-llvm", "resolution": [320, 180], "direct_ms": 212.0,
@@ -124,6 +124,7 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
     assert {c["id"] for c in claims} >= {"001.culling_speedup", "001.denoiser_2ms"}
     assert (out / "quake_drt" / "bench_asvgf.csv").is_file()
     assert "met by primary (0.910), direct (0.990); not met by secondary (0.600)" in html
+    assert "evaluated 1,600 light samples for its 1,000 shadow rays" in html  # the work raw does not do
     by_pixels = (out / "quake_drt" / "bench_rays_by_pixels.csv").read_text()
     assert by_pixels.splitlines()[0] == "resolution,primary_ratio,primary_ms" and "640x360" in by_pixels
     assert (out / "quake_drt" / "bench_rays.csv").is_file()
