@@ -188,7 +188,7 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     out = {"primary": {**_rates(timed, f.rays(prim), raw_rays), "repeats": short}}
     raw = f.raw()
     captured = []
-    f.direct(raw, capture=captured)
+    _, direct_stats = f.direct(raw, capture=captured)  # its counters: the light samples
     # The stage's shadow rays as it traced them: host chunks (o, d, length), or on a Dr.Jit backend the device loop's
     # rays per iteration ("o", Ray3f), already in device memory (copied to numpy here for the numpy-fed raw only).
     records = [c for c in captured if len(c) == 2]
@@ -197,8 +197,7 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
     o_all = np.concatenate([c[0] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     d_all = np.concatenate([c[1] for c in chunks]) if chunks else np.zeros((0, 3), np.float32)
     l_all = np.concatenate([c[2] for c in chunks]) if chunks else np.zeros(0, np.float32)
-    stats = []  # the stage's counters: its light samples
-    dir_rays = f.rays(lambda: stats.append(f.direct(raw)[1]))
+    dir_rays = f.rays(lambda: f.direct(raw))
     if len(o_all):
         log = [("o", *c) for c in captured if len(c) == 3]
         timed = _against_raw(lambda: f.direct(raw), log, tracer, repeats,
@@ -208,7 +207,7 @@ def bench_rays(scene, tracer, resolution, t_s: float, repeats: int, backend: str
         dir_ms, _ = _median_ms(lambda: f.direct(raw), repeats)
         out["direct"] = {"ms": dir_ms, "rays": dir_rays, "rays_per_s": dir_rays / (dir_ms / 1e3),
                          "raw_ms": float("nan"), "raw_rays": 0, "raw_rays_per_s": float("nan"), "ratio": float("nan")}
-    out["direct"].update(repeats=repeats, shadow_rays=int(len(o_all)), light_samples=int(stats[0].selected))
+    out["direct"].update(repeats=repeats, shadow_rays=int(len(o_all)), light_samples=int(direct_stats.selected))
     out["secondary"] = bench_secondary(scene, tracer, resolution, t_s, short, backend)
     return {"scene": scene.name, "resolution": [f.w, f.h], "repeats": repeats, "settings": "paper pipeline, "
             "num_random_dl 0 (every culled light), antialiasing on", **out}

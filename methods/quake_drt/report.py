@@ -493,11 +493,11 @@ def _ratio_goal_text(rows: list) -> str:
 def _samples_text(r: dict) -> str:
     """How many light samples the direct stage evaluated for its shadow rays (the work raw does not do)."""
     d = r.get("direct", {})
-    if not d.get("light_samples") or not d.get("rays"):
+    if not d.get("light_samples") or not d.get("shadow_rays"):
         return ""
-    return (f" The direct stage evaluated {d['light_samples']:,} light samples for its {d['rays']:,} shadow rays: a "
-            "sample whose light lies below the point's horizon or behind a one-sided emitter costs its choice and "
-            "geometry but traces no ray, and raw traces only the rays.")
+    return (f" The direct stage evaluated {d['light_samples']:,} light samples for its {d['shadow_rays']:,} shadow "
+            "rays: a sample whose light lies below the point's horizon or behind a one-sided emitter costs its choice "
+            "and geometry but traces no ray, and raw traces only the rays.")
 
 
 def _bench_part(bench, files: SectionFiles) -> str:

@@ -72,7 +72,8 @@ def stored(tmp_path):
                 "repeats": 11, **kw}
 
     bench["rays"] = {"scene": SCENE, "backend": "embree", "resolution": [320, 180], "repeats": 3, "settings": "s",
-                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"), "direct": stage(0.99, light_samples=1600),
+                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"),
+                     "direct": stage(0.99, shadow_rays=1000, light_samples=1600),
                      "by_pixels": [{"resolution": [320, 180], "primary_ms": 2.0, "primary_ratio": 0.91},
                                    {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}],
                      "on_devices": [{"backend": "mitsuba-llvm", "resolution": [320, 180], "direct_ms": 212.0,
