@@ -31,7 +31,8 @@ import pandas as pd
 
 from suite import fileio
 from suite.harness import registry, results, verdicts
-from suite.harness.reporting import copy_file, esc, figure, label_axes, save_figure, table_html, write_csv
+from suite.harness.reporting import (copy_file, esc, figure, label_axes, lo_hi_text, save_figure, table_html,
+                                     write_csv)
 from suite.harness.verdicts import format_value
 
 REPO_DIR = Path(__file__).resolve().parent.parent
@@ -273,13 +274,17 @@ def core_bench_section(results_root: Path, out: Path) -> str:
                              "bytes": st.get("bytes", np.nan), "note": st.get("note", "")})
             ratios.append({"setting": setting, "lights": r["lights"],
                            "G-buffer / raw intersect (goal <= 2)": r.get("gbuffer_over_raw_intersect", np.nan),
+                           "G-buffer, repeats": lo_hi_text(r.get("gbuffer_over_raw_intersect_range")),
                            "G-buffer, device time alone": r.get("gbuffer_over_raw_intersect_kernels", np.nan),
                            "visibility raw / pass (goal >= 0.9)": r.get("visibility_raw_over_pass", np.nan),
+                           "visibility, repeats": lo_hi_text(r.get("visibility_raw_over_pass_range")),
                            "visibility, device time alone": r.get("visibility_raw_over_pass_kernels", np.nan)})
         stages, ratio_table = pd.DataFrame(rows), pd.DataFrame(ratios)
         write_csv(stages, out / "core_stages.csv")
         parts.append("<p>One frame's stages (median ms of interleaved calls; <i>kernel_ms</i>: the execution time of "
-                     "the launches a call makes, from Dr.Jit's kernel history, without the host's per-call costs). "
+                     "the launches a call makes, from Dr.Jit's kernel history, without the host's per-call costs; "
+                     "<i>repeats</i>: the lowest and highest ratio of one repeat's two calls, which ran next to each "
+                     "other). "
                      "<a href='core_stages.csv'>core_stages.csv</a></p>" + table_html(ratio_table)
                      + "<details><summary>every stage</summary>" + table_html(stages) + "</details>")
     if tracing is not None:
@@ -290,6 +295,7 @@ def core_bench_section(results_root: Path, out: Path) -> str:
             for query in ("occluded", "intersect"):
                 q = r.get(query) or {}
                 row[f"{query} suite/raw (goal >= 0.9)"] = q.get("ratio", np.nan)
+                row[f"{query} repeats"] = lo_hi_text(q.get("ratio_range"))
                 row[f"{query} device time alone"] = q.get("kernel_ratio", np.nan)
                 row[f"{query} queries per ray"] = q.get("queries_per_ray", np.nan)
             rows.append(row)

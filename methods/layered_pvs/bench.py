@@ -3,7 +3,9 @@ reprojection cost, how they grow with pixels and layers, and the report's images
 frame, difference). Stores ``<results>/bench/layered_pvs.json`` and PNGs in ``<results>/bench/layered_pvs/``.
 
 ``<stage>_ratio`` is the time the backend alone takes for the stage's own rays over the stage's time (1 = the stage
-is pure tracing; below it, the share of shading, sampling and bookkeeping). The rays are recorded in one update
+is pure tracing; below it, the share of shading, sampling and bookkeeping), and ``<stage>_ratio_range`` the lowest
+and highest such ratio of one update and the replay timed right after it (how far this machine's noise moves one
+measurement). The rays are recorded in one update
 (:class:`RecordingTracer`, outside every timed run); the stages are then timed in ``--repeats`` further updates with
 the plain tracer (the same rays: the update is deterministic), interleaved with the replay of each stage's rays on
 the backend's raw entry points (``raw_intersect`` / ``raw_occluded`` on rays already in its frame and layout, each
@@ -39,6 +41,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from suite import fileio
+from suite.core.trace.bench import paired_range
 from suite.core.trace.recording import RecordingTracer, device_replay
 from suite.errors import UserError
 from suite.harness.method import wait_for_device
@@ -220,6 +223,8 @@ def server_rows(scene, tracer, params, resolutions, layer_counts, t_s, repeats: 
                 per_stage[f"{stage}_rays"] = n
                 per_stage[f"{stage}_ratio"] = float(np.median(raw_ms[stage]) / np.median(stage_ms[stage])) \
                     if n else float("nan")
+                if n:  # one update's ratio, lowest and highest: the stage and its replay ran next to each other
+                    per_stage[f"{stage}_ratio_range"] = paired_range(raw_ms[stage], stage_ms[stage])
                 ctx.stage_ms[stage] = float(np.median(stage_ms[stage]))
             n_rays = sum(per_stage[f"{s}_rays"] for s in SERVER_STAGES)
             rows.append({"resolution": f"{res[0]}x{res[1]}", "layers": L, "rays": n_rays, "repeats": reps,

@@ -16,7 +16,7 @@ import pandas as pd
 
 from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, esc, load_bench, table_html
+from suite.harness.reporting import SectionFiles, esc, load_bench, lo_hi_text, table_html
 from suite.harness.verdicts import Tolerance
 
 METHOD = "layered_pvs"
@@ -279,7 +279,7 @@ def bench_html(bench, files, run_dirs, results_root) -> list:
                         f"filling) likewise.</p>")
         for key in ("server", "codecs", "client"):
             if key in bench:
-                html.append(f"<p>{esc(key)}</p>" + table_html(pd.DataFrame(bench[key])))
+                html.append(f"<p>{esc(key)}</p>" + table_html(_ranges_as_text(pd.DataFrame(bench[key]))))
             if key == "server" and bench.get("server_on_devices"):
                 html.append("<p>server stages on each Dr.Jit backend that works here (the PVS views, the depth "
                             "peeling and the path tracer as device kernels; each ratio against that backend's raw on "
@@ -296,6 +296,13 @@ def bench_html(bench, files, run_dirs, results_root) -> list:
 BENCH_STAGES = ("pvs", "layers", "path_trace")
 
 
+def _ranges_as_text(t: pd.DataFrame) -> pd.DataFrame:
+    """The bench's ``*_range`` columns ([lowest, highest]) as ``lo-hi`` text."""
+    for col in [c for c in t.columns if str(c).endswith("_range")]:
+        t[col] = t[col].map(lo_hi_text)
+    return t
+
+
 def _pixels(resolution: str) -> int:
     w, h = (int(v) for v in str(resolution).split("x"))
     return w * h
@@ -303,7 +310,8 @@ def _pixels(resolution: str) -> int:
 
 def ratio_goal_text(rows: list) -> str:
     """One sentence per traced stage of the bench's server table: its stage/raw range, how many rows meet
-    :data:`RAY_RATE_GOAL`, and the smallest size from which every row does (ratios grow with pixels)."""
+    :data:`RAY_RATE_GOAL`, how many have updates on both sides of it (``<stage>_ratio_range``), and the smallest
+    size from which every row does (ratios grow with pixels)."""
     parts = []
     for stage in BENCH_STAGES:
         got = [(r["resolution"], r[f"{stage}_ratio"]) for r in rows
@@ -316,6 +324,10 @@ def ratio_goal_text(rows: list) -> str:
                           if all(v >= RAY_RATE_GOAL for r, v in got if _pixels(r) >= _pixels(res))), None)
         text = (f"{stage} {min(v for _, v in got):.3f}-{max(v for _, v in got):.3f} of raw, "
                 f"{met} of {len(got)} rows at >= {RAY_RATE_GOAL}")
+        # rows where one update's ratio fell on the other side of the goal than another's (``*_ratio_range``)
+        split = sum(1 for r in rows if len(r.get(f"{stage}_ratio_range") or ()) == 2
+                    and r[f"{stage}_ratio_range"][0] < RAY_RATE_GOAL <= r[f"{stage}_ratio_range"][1])
+        text += f", {split} of {len(got)} with updates on both sides of the goal" if split else ""
         parts.append(text + (f" (every row from {from_size} up)" if from_size and met < len(got) else
                              "" if met == len(got) else " (not at the largest size)"))
     return ("Stage rays/s against the backend's raw rate on the same rays (goal >= " + f"{RAY_RATE_GOAL}): "

@@ -7,7 +7,8 @@ running anything:
 ``rays``
     Rays per second of the tracing stages against the backend's raw rate on the very same rays, medians of
     ``--repeats`` calls of stage and raw in turn (at least :data:`SHORT_STAGE_REPEATS` for the primary and secondary
-    stages: a few tens of milliseconds each, whose ratio a single slow call moves): the primary stage (G-buffer plus
+    stages: a few tens of milliseconds each, whose ratio a single slow call moves; ``ratio_range``: the lowest and
+    highest ratio of one repeat's stage and raw calls): the primary stage (G-buffer plus
     anti-aliased shading rays, attributes, overlays; on a Dr.Jit backend both are device kernels,
     methods/quake_drt/device_primary.py) against the raw closest-hit query on its two camera ray sets; the direct stage
     (light rows, subsampling, ray generation, shadow rays, accumulation) against the raw occlusion query on the rays it
@@ -84,17 +85,20 @@ def _against_raw(stage, log, tracer, repeats: int, numpy_raw, records=()) -> dic
     turn (medians). On a Dr.Jit backend raw is the backend on rays in device memory (``log`` uploaded once, here:
     :func:`suite.core.trace.recording.device_replay`), and the numpy-fed raw entry points (``numpy_raw``) are timed
     beside it as ``raw_numpy_ms``; elsewhere raw is ``numpy_raw``."""
-    from suite.core.trace.bench import interleaved
+    from suite.core.trace.bench import interleaved_times, paired_range
     from suite.core.trace.recording import device_replay
 
     dev = getattr(tracer, "device", None)
     if dev is None:
-        t = interleaved([("stage", stage), ("raw", numpy_raw)], repeats)
-        return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "raw entry points"}
+        times = interleaved_times([("stage", stage), ("raw", numpy_raw)], repeats)
+        t = {k: float(np.median(v)) for k, v in times.items()}
+        return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "raw entry points",
+                "time_ratio_range": paired_range(times["raw"], times["stage"])}
     _, replay = device_replay(dev, log, records)
-    t = interleaved([("stage", stage), ("raw", replay), ("raw_numpy", numpy_raw)], repeats)
+    times = interleaved_times([("stage", stage), ("raw", replay), ("raw_numpy", numpy_raw)], repeats)
+    t = {k: float(np.median(v)) for k, v in times.items()}
     return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "device-resident rays",
-            "raw_numpy_ms": 1e3 * t["raw_numpy"]}
+            "raw_numpy_ms": 1e3 * t["raw_numpy"], "time_ratio_range": paired_range(times["raw"], times["stage"])}
 
 
 def _host_rays(dev, records) -> list:
@@ -104,10 +108,14 @@ def _host_rays(dev, records) -> list:
 
 
 def _rates(entry: dict, rays: int, raw_rays: int) -> dict:
-    """The entry's rays per second and its ratios to raw (and to the numpy-fed raw where it was timed)."""
+    """The entry's rays per second and its ratios to raw (and to the numpy-fed raw where it was timed);
+    ``ratio_range``: the lowest and highest ratio of one repeat's stage and raw calls, which ran next to each other."""
     ms, raw_ms = entry["ms"], entry["raw_ms"]
-    out = {**entry, "rays": rays, "rays_per_s": rays / (ms / 1e3), "raw_rays": raw_rays,
-           "raw_rays_per_s": raw_rays / (raw_ms / 1e3), "ratio": (rays / ms) / (raw_rays / raw_ms)}
+    out = {k: v for k, v in entry.items() if k != "time_ratio_range"}
+    out.update(rays=rays, rays_per_s=rays / (ms / 1e3), raw_rays=raw_rays, raw_rays_per_s=raw_rays / (raw_ms / 1e3),
+               ratio=(rays / ms) / (raw_rays / raw_ms))
+    if "time_ratio_range" in entry:
+        out["ratio_range"] = [rays / raw_rays * r for r in entry["time_ratio_range"]]
     if "raw_numpy_ms" in entry:
         out["ratio_numpy"] = (rays / ms) / (raw_rays / entry["raw_numpy_ms"])
     return out
@@ -441,6 +449,8 @@ def ratios_row(rays: dict) -> dict:
     for stage in ("primary", "secondary", "direct"):
         if stage in rays:
             row[f"{stage}_ms"], row[f"{stage}_ratio"] = rays[stage]["ms"], rays[stage]["ratio"]
+            if "ratio_range" in rays[stage]:
+                row[f"{stage}_ratio_range"] = rays[stage]["ratio_range"]
     return row
 
 
@@ -509,6 +519,8 @@ def run(args) -> dict:
 
 
 def format_results(out: dict) -> str:
+    from suite.harness.reporting import range_text
+
     lines = []
     if "rays" in out:
         r = out["rays"]
@@ -523,7 +535,8 @@ def format_results(out: dict) -> str:
             samples = f", {s['light_samples']:,} light samples" if "light_samples" in s else ""
             lines.append(f"  {stage:9} {s['rays_per_s']:>13,.0f} rays/s ({s['ms']:.1f} ms, {s['rays']:,} rays"
                          f"{samples})   raw {s['raw_rays_per_s']:>13,.0f} rays/s ({s['raw_ms']:.1f} ms)   ratio "
-                         f"{s['ratio']:.3f}{numpy_fed}   median of {s.get('repeats', r['repeats'])}{where}")
+                         f"{s['ratio']:.3f}{range_text(s.get('ratio_range'))}{numpy_fed}   median of "
+                         f"{s.get('repeats', r['repeats'])}{where}")
         for row in r.get("by_pixels", [])[1:]:  # the first is the table above
             lines.append(f"  at {row['resolution'][0]}x{row['resolution'][1]}: "
                          + "   ".join(f"{st} {row[st + '_ratio']:.3f}" for st in ("primary", "secondary", "direct")

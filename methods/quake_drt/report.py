@@ -23,7 +23,7 @@ import pandas as pd
 
 from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, load_bench, esc, table_html
+from suite.harness.reporting import SectionFiles, load_bench, lo_hi_text, esc, table_html
 from suite.harness.verdicts import Claim, Tolerance
 
 SUBDIR = "quake_drt"
@@ -477,9 +477,16 @@ def _images(df: pd.DataFrame, run_dirs, files: SectionFiles) -> str:
 
 
 def _ratio_goal_text(rows: list) -> str:
-    """Which stages of the bench's rays table meet :data:`RAY_RATE_GOAL` and which do not, with their ratios."""
-    ok = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if r["stage / raw"] >= RAY_RATE_GOAL]
-    short = [f"{r['stage']} ({r['stage / raw']:.3f})" for r in rows if not r["stage / raw"] >= RAY_RATE_GOAL]
+    """Which stages of the bench's rays table meet :data:`RAY_RATE_GOAL` and which do not, with their ratios (and,
+    where one repeat's ratio fell on the other side of the goal, their range over the repeats)."""
+    def text(r):
+        lo_hi = r.get("_range")
+        undecided = lo_hi and lo_hi[0] < RAY_RATE_GOAL <= lo_hi[1]
+        return f"{r['stage']} ({r['stage / raw']:.3f}" + (
+            f"; repeats {lo_hi[0]:.3f}-{lo_hi[1]:.3f}, on both sides of the goal)" if undecided else ")")
+
+    ok = [text(r) for r in rows if r["stage / raw"] >= RAY_RATE_GOAL]
+    short = [text(r) for r in rows if not r["stage / raw"] >= RAY_RATE_GOAL]
     if not rows:
         return ""
     head = f"Goal stage / raw >= {RAY_RATE_GOAL}: "
@@ -508,14 +515,21 @@ def _bench_part(bench, files: SectionFiles) -> str:
     if r:
         rows = [{"stage": s, "scene": r[s].get("scene", r["scene"]), "rays": r[s]["rays"], "ms": r[s]["ms"],
                  "rays/s": r[s]["rays_per_s"], "raw rays/s": r[s]["raw_rays_per_s"], "stage / raw": r[s]["ratio"],
-                 "repeats": r[s].get("repeats", r["repeats"])}
+                 "_range": r[s].get("ratio_range"), "repeats": r[s].get("repeats", r["repeats"])}
                 for s in ("primary", "secondary", "direct") if s in r]
-        t = pd.DataFrame(rows)
+        t = pd.DataFrame([{k: v for k, v in row.items() if k != "_range"} for row in rows])
+        if any(row["_range"] for row in rows):  # one repeat's stage / raw, lowest and highest (bench.py)
+            t.insert(t.columns.get_loc("stage / raw") + 1, "repeats' range",
+                     [lo_hi_text(row["_range"]) for row in rows])
         out.append(_caption(r["scene"], r.get("backend", NOT_RECORDED), f"{r['resolution'][0]}x{r['resolution'][1]}",
                             f", {r.get('settings', '')}, medians of each stage's repeats")
                    + "<p>Bench: rays per second of the tracing stages against the backend's raw query on the same "
                      "rays (the secondary stage on a scene with mirrors and glass when the benchmark's level has "
-                     "none; its scene column says where). " + esc(_ratio_goal_text(rows) + _samples_text(r))
+                     "none; its scene column says where). "
+                   + ("The repeats' range is the lowest and highest stage / raw of one repeat, whose stage and raw "
+                      "calls ran next to each other: how far this machine's noise moves one measurement. "
+                      if "repeats' range" in t else "")
+                   + esc(_ratio_goal_text(rows) + _samples_text(r))
                    + files.csv(t, "bench_rays.csv") + "</p>" + table_html(t))
         if len(r.get("by_pixels", [])) > 1:
             bp = pd.DataFrame(r["by_pixels"])

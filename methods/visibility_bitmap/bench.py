@@ -40,7 +40,9 @@ import numpy as np
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs
+from suite.core.trace.bench import paired_range
 from suite.core.trace.recording import RecordingTracer
+from suite.harness.reporting import range_text
 
 DEFAULT_CODECS = ("none", "lzo", "lz4", "zstd", "zstd:9", "bitplane+lz4", "bitplane+zstd", "delta+lz4", "delta+zstd",
                   "delta+bitplane+zstd", "h264", "bitplane+h264")
@@ -197,7 +199,7 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
             "rays": rays, "repeats": repeats, "path": "host", "raw": "numpy rays",
             "stage_ms": 1e3 * float(np.median(stage_s)),
             "raw_ms": 1e3 * float(np.median(raw_s)), "stage_rays_per_s": stage_rps, "raw_rays_per_s": raw_rps,
-            "ratio": stage_rps / raw_rps, "goal": 0.90}
+            "ratio": stage_rps / raw_rps, "ratio_range": paired_range(raw_s, stage_s), "goal": 0.90}
 
 
 def _throughput_device(scene, tracer, resolution, t_s, layout, repeats) -> dict:
@@ -238,7 +240,7 @@ def _throughput_device(scene, tracer, resolution, t_s, layout, repeats) -> dict:
             "rays": rays, "repeats": repeats, "path": f"device ({dev.variant})",
             "stage_ms": 1e3 * float(np.median(stage_s)), "raw_ms": 1e3 * float(np.median(raw_s)),
             "stage_rays_per_s": stage_rps, "raw_rays_per_s": raw_rps, "ratio": stage_rps / raw_rps,
-            "raw": "device-resident rays", "numpy_raw_ms": 1e3 * float(np.median(np_s)),
+            "ratio_range": paired_range(raw_s, stage_s), "raw": "device-resident rays", "numpy_raw_ms": 1e3 * float(np.median(np_s)),
             "numpy_raw_rays_per_s": np_rps, "numpy_raw_ratio": np_rps / raw_rps, "goal": 0.90}
 
 
@@ -457,7 +459,7 @@ def format_results(out: dict) -> str:
                   f"{r.get('raw', 'numpy rays')}",
                   f"  stage {r['stage_rays_per_s']:>13,.0f} rays/s ({r['stage_ms']:.1f} ms)   "
                   f"raw {r['raw_rays_per_s']:>13,.0f} rays/s ({r['raw_ms']:.1f} ms)   "
-                  f"ratio {r['ratio']:.3f}  (goal >= {r['goal']:.2f})"]
+                  f"ratio {r['ratio']:.3f}{range_text(r.get('ratio_range'))}  (goal >= {r['goal']:.2f})"]
         if "numpy_raw_rays_per_s" in r:
             lines.append(f"  raw fed from numpy {r['numpy_raw_rays_per_s']:>13,.0f} rays/s ({r['numpy_raw_ms']:.1f} ms), "
                          f"{r['numpy_raw_ratio']:.3f} of the device-resident rate")

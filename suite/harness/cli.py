@@ -470,8 +470,11 @@ def _bench_tracing(argv) -> int:
     if args.json:
         _print_json(result)
         return 0
+    from suite.harness.reporting import range_text
+
     print(f"tracing benchmark: suite vs raw rays/s, median of {rows[0].get('repeats', '?')} (goal: suite/raw >= 0.90); raw = "
-          "the backend's own rate on rays in its memory (Dr.Jit arrays for Mitsuba)")
+          "the backend's own rate on rays in its memory (Dr.Jit arrays for Mitsuba); (repeats lo-hi): the lowest and "
+          "highest ratio of one repeat's two calls")
     print(f"  host {result['host']['node']} ({result['host']['platform']}), git {result['git']['commit'][:12]}")
     for r in rows:
         print(f"  {r['scene']} on {r['backend']} ({r.get('interface', 'numpy')}), {r['rays']:,} shadow rays")
@@ -479,8 +482,8 @@ def _bench_tracing(argv) -> int:
             q = r[query]
             walk = q.get("queries_per_ray", 1.0)
             print(f"    {query:9s}  suite {q['suite_rays_per_s']:>13,.0f} rays/s   raw {q['raw_rays_per_s']:>13,.0f} "
-                  f"rays/s   ratio {q['ratio']:.3f}" + (f"   ({walk:.2f} backend queries per ray: the alpha walk)"
-                                                         if walk > 1.0005 else ""))
+                  f"rays/s   ratio {q['ratio']:.3f}{range_text(q.get('ratio_range'))}"
+                  + (f"   ({walk:.2f} backend queries per ray: the alpha walk)" if walk > 1.0005 else ""))
             if "kernel_ratio" in q:
                 print(f"    {'':9s}  per call: suite {q['suite_ms']:.3f} ms, raw {q['raw_ms']:.3f} ms; device time "
                       f"alone (kernel history): suite {q['suite_kernel_ms']:.3f} ms, raw {q['raw_kernel_ms']:.3f} ms, "
@@ -531,6 +534,8 @@ def _bench_core(argv) -> int:
 
 
 def format_core(rows) -> str:
+    from suite.harness.reporting import range_text
+
     lines = []
     for r in rows:
         w, h = r["resolution"]
@@ -545,10 +550,12 @@ def format_core(rows) -> str:
         def kern(key, digits):
             return f"; device time alone (kernel ms): {r[key]:.{digits}f}" if key in r else ""
 
-        lines.append(f"  G-buffer / raw intersect of the camera rays: {r['gbuffer_over_raw_intersect']:.2f} (goal <= 2)"
+        lines.append(f"  G-buffer / raw intersect of the camera rays: {r['gbuffer_over_raw_intersect']:.2f}"
+                     f"{range_text(r.get('gbuffer_over_raw_intersect_range'), 2)} (goal <= 2)"
                      + kern("gbuffer_over_raw_intersect_kernels", 2))
         if "visibility_raw_over_pass" in r:
-            lines.append(f"  visibility pass: raw/pass {r['visibility_raw_over_pass']:.3f} (goal >= 0.9)"
+            lines.append(f"  visibility pass: raw/pass {r['visibility_raw_over_pass']:.3f}"
+                         f"{range_text(r.get('visibility_raw_over_pass_range'))} (goal >= 0.9)"
                          + kern("visibility_raw_over_pass_kernels", 3))
     return "\n".join(lines)
 

@@ -46,6 +46,20 @@ def _float_text(v: float) -> str:
     return f"{v:,.0f}" if abs(v) >= 1000 else f"{v:.4g}"
 
 
+def lo_hi_text(lo_hi, digits: int = 3) -> str:
+    """A bench's ``..._range`` (``[lowest, highest]`` ratio of one repeat: ``suite.core.trace.bench.paired_range``)
+    as ``lo-hi``; empty where none was stored (documents written before ranges were)."""
+    if not isinstance(lo_hi, (list, tuple)) or len(lo_hi) != 2:
+        return ""
+    return f"{lo_hi[0]:.{digits}f}-{lo_hi[1]:.{digits}f}"
+
+
+def range_text(lo_hi, digits: int = 3) -> str:
+    """`` (repeats lo-hi)`` after a printed ratio (:func:`lo_hi_text`), or nothing."""
+    text = lo_hi_text(lo_hi, digits)
+    return f" (repeats {text})" if text else ""
+
+
 def table_html(df: pd.DataFrame, index: bool = False, prose: bool = False) -> str:
     """An HTML table (class ``t``): count columns (:data:`COUNT_WORDS`) and floats from 1000 up as whole numbers
     with separators, other floats to 4 significant digits, missing values as "–"; cell text is escaped.

@@ -31,6 +31,35 @@ def test01_tracing_bench_compares_suite_and_raw_on_the_backends_own_memory(backe
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+def test01b_every_ratio_of_medians_comes_with_the_range_of_its_paired_repeats(backend):
+    """One repeat's ratio (its two calls ran next to each other), lowest and highest: the ratio of the medians lies
+    between them, as it must for any paired samples."""
+    out = bench.run(load("cornell"), backend, max_rays=20_000, repeats=5, resolution=(160, 90))
+    for query in ("occluded", "intersect"):
+        lo, hi = out[query]["ratio_range"]
+        assert 0 < lo <= out[query]["ratio"] <= hi
+    core = bench.core(load("cornell"), backend, (32, 18), repeats=3, area_samples=1)
+    for key in ("gbuffer_over_raw_intersect", "visibility_raw_over_pass"):
+        if key in core:
+            lo, hi = core[key + "_range"]
+            assert 0 < lo <= core[key] <= hi
+
+
+def test01c_paired_range_takes_each_repeat_as_a_pair():
+    times = bench.interleaved_times([("a", lambda: None), ("b", lambda: None)], 4)
+    assert [len(v) for v in times.values()] == [4, 4]
+    # pairs (num[i], den[i]), not the spread of each side: 2/1, 4/4, 6/3 -> 1..2 (sorted sides would give 2/1..6/4)
+    assert bench.paired_range([2.0, 4.0, 6.0], [1.0, 4.0, 3.0]) == [1.0, 2.0]
+    assert bench.paired_range([1.0, 2.0], [2.0, 2.0], scale=3.0) == [1.5, 3.0]
+    from suite.harness.reporting import lo_hi_text, range_text
+
+    assert range_text([0.81234, 0.9]) == " (repeats 0.812-0.900)" and range_text(None) == ""
+    assert lo_hi_text([0.5, 1.25], 2) == "0.50-1.25" and lo_hi_text(float("nan")) == ""
+    with pytest.raises(ValueError, match="paired"):
+        bench.paired_range([1.0, 2.0], [1.0])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test02_core_bench_reports_every_stage_with_rays_pixels_and_copy_bytes(backend):
     out = bench.core(load("atrium"), backend, (32, 18), repeats=1, area_samples=2)
     stages = {s["stage"]: s for s in out["stages"]}

@@ -1,4 +1,5 @@
 """The report reads stored results only and writes index.html, plots and tables."""
+import json
 import re
 import shutil
 from pathlib import Path
@@ -151,8 +152,13 @@ def test08_the_report_shows_the_core_benchmarks_per_backend(tmp_path):
     assert llvm.loc["gbuffer", "kernel_ms"] > 0 and llvm.loc["visibility", "rays"] > 0
     assert llvm.loc["copy_gbuffer_to_host", "bytes"] > 0
     for text in ("G-buffer / raw intersect (goal &lt;= 2)", "visibility raw / pass (goal &gt;= 0.9)",
-                 "occluded suite/raw (goal &gt;= 0.9)", "cornell", "device (llvm_ad_rgb)"):
+                 "occluded suite/raw (goal &gt;= 0.9)", "cornell", "device (llvm_ad_rgb)", "visibility, repeats",
+                 "occluded repeats"):
         assert text in html, text
+    # each ratio's repeats as lowest-highest (one repeat's ratio: its two calls ran next to each other)
+    core = json.loads((tmp_path / "bench" / "core.json").read_text())
+    lo, hi = core["results"][1]["visibility_raw_over_pass_range"]
+    assert f"{lo:.3f}-{hi:.3f}" in html
 
 
 def test09_the_run_matrix_states_what_a_method_left_out_of_a_scene(fake_config, tmp_path, monkeypatch):

@@ -9,6 +9,10 @@ from the tracer's counters: the closest-hit queries of the alpha walk) where raw
 ``ratio_at_queries_per_ray`` is the ratio against raw making as many queries per ray (``ratio * queries_per_ray``),
 what the interface costs beyond the extra queries themselves. The goal is stated for ``ratio``.
 
+Every ratio of medians comes with ``..._range``: the lowest and highest ratio of one repeat's two calls, which ran
+next to each other (:func:`paired_range`). On a shared 2-core machine a single call moves by 10-15 %, so a ratio
+whose range straddles its goal is not decided by the run, whichever side its median falls on.
+
 "Raw" is the backend's own rate on rays that stay in its memory: numpy arrays for Embree (embreex's interface),
 device-resident Dr.Jit arrays for Mitsuba. For Mitsuba the headline ratio is therefore the suite's device-resident
 query (``tracer.device.occluded``/``intersect`` on Dr.Jit rays) against ``Scene.ray_test`` /
@@ -60,15 +64,36 @@ def _median_time(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def interleaved(pairs, repeats: int) -> dict:
-    """Median seconds of each named function, the functions run in turn ``repeats`` times (after one warm-up)."""
+def interleaved_times(pairs, repeats: int) -> dict:
+    """Seconds of every call of each named function: one warm-up call each, then the functions in turn ``repeats``
+    times, so that the i-th calls of any two of them ran next to each other (:func:`paired_range`)."""
     for _, fn in pairs:
         fn()
     times = {name: [] for name, _ in pairs}
-    for _ in range(repeats):
+    for _ in range(max(int(repeats), 1)):
         for name, fn in pairs:
             times[name].append(_median_time(fn, 1))
+    return times
+
+
+def interleaved(pairs, repeats: int) -> dict:
+    """Median seconds of each named function, the functions run in turn ``repeats`` times (after one warm-up)."""
+    return _medians(interleaved_times(pairs, repeats))
+
+
+def _medians(times: dict) -> dict:
     return {name: float(np.median(t)) for name, t in times.items()}
+
+
+def paired_range(num, den, scale: float = 1.0) -> list:
+    """``[lowest, highest]`` of ``scale * num[i] / den[i]`` over paired repeats (the i-th entries ran next to each
+    other, as :func:`interleaved_times` runs them): how far one repeat's ratio strays from the ratio of the medians
+    on this machine. A goal inside the range is not decided by the run."""
+    num, den = np.asarray(num, np.float64), np.asarray(den, np.float64)
+    if len(num) != len(den) or len(num) == 0:
+        raise ValueError(f"paired_range needs paired repeats, got {len(num)} and {len(den)}")
+    r = float(scale) * num / den
+    return [float(r.min()), float(r.max())]
 
 
 def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 5,
@@ -99,11 +124,12 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     if dev is None:
         out["interface"] = "numpy"
         for query, (suite_fn, raw_fn) in numpy_fns.items():
-            t = interleaved([("suite", suite_fn), ("raw", raw_fn)], repeats)
+            times = interleaved_times([("suite", suite_fn), ("raw", raw_fn)], repeats)
+            t = _medians(times)
             q = queries(suite_fn)
             out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"],
-                          "ratio": t["raw"] / t["suite"], "queries_per_ray": q,
-                          "ratio_at_queries_per_ray": q * t["raw"] / t["suite"]}
+                          "ratio": t["raw"] / t["suite"], "ratio_range": paired_range(times["raw"], times["suite"]),
+                          "queries_per_ray": q, "ratio_at_queries_per_ray": q * t["raw"] / t["suite"]}
         return out
     # Device-resident rays: the suite's query takes world-space float32 origins (like the numpy interface) and does
     # its frame shift, length clipping, id mapping and counting on the device; raw gets the tracing-frame rays.
@@ -118,13 +144,15 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
     for query in ("occluded", "intersect"):
         # Each pair interleaved on its own: a numpy-fed call leaves the allocator and the copy engine busy with its
         # large transfers, which the call timed right after it would absorb.
-        t = interleaved([("suite", device_fns[query][0]), ("raw", device_fns[query][1])], repeats)
+        times = interleaved_times([("suite", device_fns[query][0]), ("raw", device_fns[query][1])], repeats)
+        t = _medians(times)
         t.update(interleaved([("numpy_suite", numpy_fns[query][0]), ("numpy_raw", numpy_fns[query][1])], repeats))
         q = queries(device_fns[query][0])
         # device time alone (kernel history): what is left of the gap once the host's per-call costs are taken out
         k_suite, k_raw = dev.kernel_ms(device_fns[query][0], repeats), dev.kernel_ms(device_fns[query][1], repeats)
         out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"], "ratio": t["raw"] / t["suite"],
-                      "queries_per_ray": q, "ratio_at_queries_per_ray": q * t["raw"] / t["suite"],
+                      "ratio_range": paired_range(times["raw"], times["suite"]), "queries_per_ray": q,
+                      "ratio_at_queries_per_ray": q * t["raw"] / t["suite"],
                       "suite_ms": 1e3 * t["suite"], "raw_ms": 1e3 * t["raw"],
                       "suite_kernel_ms": k_suite, "raw_kernel_ms": k_raw,
                       "kernel_ratio": k_raw / k_suite if k_suite > 0 else float("nan"),
@@ -186,11 +214,13 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         stage("trace", ms, pixels)
         g, rays = counted(lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s))
         ro, rd, _, rlen = as_rays(o32, d32, 0.0, np.inf, tracer.shift)
-        t = interleaved([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
-                         ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
+        times = interleaved_times([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
+                                   ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
+        t = _medians(times)
         gb = stage("gbuffer", 1e3 * t["gbuffer"], rays)
         stage("raw_intersect", 1e3 * t["raw"], pixels)
         out["gbuffer_over_raw_intersect"] = t["gbuffer"] / t["raw"]
+        out["gbuffer_over_raw_intersect_range"] = paired_range(times["gbuffer"], times["raw"])
         ms, vis = _timed(lambda: shading.point_light_visibility(g, lights, tracer), repeats)
         _, rays = counted(lambda: shading.point_light_visibility(g, lights, tracer))
         stage("visibility", ms, rays)
@@ -230,11 +260,13 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         return dev.raw_intersect(ray)
 
     g = gbuffer()
-    t = interleaved([("gbuffer", gbuffer), ("raw", raw_intersect)], repeats)
+    times = interleaved_times([("gbuffer", gbuffer), ("raw", raw_intersect)], repeats)
+    t = _medians(times)
     k_gb, k_raw = dev.kernel_ms(gbuffer, repeats), dev.kernel_ms(raw_intersect, repeats)
     gb = stage("gbuffer", 1e3 * t["gbuffer"], g.rays, note="fused: one kernel", kernel_ms=k_gb)
     stage("raw_intersect", 1e3 * t["raw"], pixels, note="the same camera rays, held in device memory", kernel_ms=k_raw)
     out["gbuffer_over_raw_intersect"] = gb["ms"] / (1e3 * t["raw"])
+    out["gbuffer_over_raw_intersect_range"] = paired_range(times["gbuffer"], times["raw"])
     out["gbuffer_over_raw_intersect_kernels"] = k_gb / k_raw if k_raw > 0 else float("nan")
     vis, vis_rays = counted(lambda: dsh.point_light_visibility(g, lights, tracer))  # shadow rays + alpha walk
     if lights:
@@ -246,11 +278,13 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         def raw_occluded():
             dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev])
 
-        t = interleaved([("pass", visibility), ("raw", raw_occluded)], repeats)
+        times = interleaved_times([("pass", visibility), ("raw", raw_occluded)], repeats)
+        t = _medians(times)
         k_pass, k_raw = dev.kernel_ms(visibility, repeats), dev.kernel_ms(raw_occluded, repeats)
         stage("visibility", 1e3 * t["pass"], vis_rays, kernel_ms=k_pass)
         stage("raw_occluded", 1e3 * t["raw"], vis.rays, note="the pass's rays, held in device memory", kernel_ms=k_raw)
         out["visibility_raw_over_pass"] = t["raw"] / t["pass"]
+        out["visibility_raw_over_pass_range"] = paired_range(times["raw"], times["pass"])
         out["visibility_raw_over_pass_kernels"] = k_raw / k_pass if k_pass > 0 else float("nan")
     else:
         ms, vis = _timed(lambda: dsh.point_light_visibility(g, lights, tracer), repeats)

@@ -12,6 +12,8 @@ def test01_bench_stores_stage_ratios_codec_rates_client_cost_and_images(tmp_path
                      "--out", str(tmp_path)])
     row = out["server"][0]
     assert row["layers_rays"] > 0 and 0 < row["layers_ratio"] and row["render_ms_per_mpix"] > 0
+    for st in ("pvs", "layers", "path_trace"):  # one update's ratio, lowest and highest, around the medians' ratio
+        assert row[f"{st}_ratio_range"][0] <= row[f"{st}_ratio"] <= row[f"{st}_ratio_range"][1]
     assert {r["codec"] for r in out["codecs"]} >= {"quadtree_mask", "rle_huffman_mask", "jpeg_q25_444", "pvs_patch"}
     doc = json.loads((tmp_path / "bench" / "layered_pvs.json").read_text())
     assert doc["images"] and all((tmp_path / "bench" / "layered_pvs" / n).is_file() for n in doc["images"])
@@ -85,6 +87,10 @@ def test03_the_report_states_how_many_rows_meet_the_ratio_goal_and_from_which_si
     assert "path_trace 0.700-0.920 of raw, 1 of 4 rows at >= 0.9 (not at the largest size)" in \
         report.ratio_goal_text(rows)
     assert report.ratio_goal_text([]) == ""
+    # rows whose updates fell on both sides of the goal are counted
+    rows[1]["layers_ratio_range"], rows[2]["layers_ratio_range"] = [0.83, 0.88], [0.86, 0.95]
+    assert "layers 0.800-0.930 of raw, 2 of 4 rows at >= 0.9, 1 of 4 with updates on both sides of the goal" in \
+        report.ratio_goal_text(rows)
 
 
 @pytest.mark.parametrize("backend", backend_params("mitsuba-llvm", "mitsuba-cuda"))

@@ -26,6 +26,10 @@ def test01_every_part_runs_and_is_stored_with_its_work_counters(tmp_path, capsys
     assert sec["scene"] == bench.SECONDARY_SCENE and sec["specular_pixels"] > 0
     assert sec["raw_rays"] == sum(sec["rays_per_depth"]) > 0 and sec["rays"] >= sec["raw_rays"]
     assert math.isfinite(sec["ratio"]) and sec["ratio"] > 0
+    # each ratio with one repeat's lowest and highest (the stage and raw calls that ran next to each other)
+    for st in ("primary", "secondary", "direct"):
+        lo, hi = r[st]["ratio_range"]
+        assert 0 < lo <= r[st]["ratio"] * (1 + 1e-12) and r[st]["ratio"] <= hi * (1 + 1e-12)
     # the short stages take at least SHORT_STAGE_REPEATS calls; the direct stage the --repeats asked for
     assert r["primary"]["repeats"] == sec["repeats"] == bench.SHORT_STAGE_REPEATS and r["direct"]["repeats"] == 1
     # by pixels: this size's ratios, then the --rays-larger sizes'

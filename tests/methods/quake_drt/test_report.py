@@ -72,7 +72,7 @@ def stored(tmp_path):
                 "repeats": 11, **kw}
 
     bench["rays"] = {"scene": SCENE, "backend": "embree", "resolution": [320, 180], "repeats": 3, "settings": "s",
-                     "primary": stage(0.91), "secondary": stage(0.6, scene="gallery"),
+                     "primary": stage(0.91, ratio_range=[0.87, 0.95]), "secondary": stage(0.6, scene="gallery"),
                      "direct": stage(0.99, shadow_rays=1000, light_samples=1600),
                      "by_pixels": [{"resolution": [320, 180], "primary_ms": 2.0, "primary_ratio": 0.91},
                                    {"resolution": [640, 360], "primary_ms": 7.5, "primary_ratio": 0.93}],
@@ -124,7 +124,10 @@ def test03_the_section_builds_from_stored_results_and_writes_its_files(stored, t
     claims = json.loads((out / "quake_drt" / "claims.json").read_text())
     assert {c["id"] for c in claims} >= {"001.culling_speedup", "001.denoiser_2ms"}
     assert (out / "quake_drt" / "bench_asvgf.csv").is_file()
-    assert "met by primary (0.910), direct (0.990); not met by secondary (0.600)" in html
+    assert ("met by primary (0.910; repeats 0.870-0.950, on both sides of the goal), direct (0.990); not met by "
+            "secondary (0.600)") in html
+    rays_csv = (out / "quake_drt" / "bench_rays.csv").read_text()
+    assert "repeats' range" in rays_csv.splitlines()[0] and "0.870-0.950" in rays_csv  # one repeat, lowest and highest
     assert "evaluated 1,600 light samples for its 1,000 shadow rays" in html  # the work raw does not do
     by_pixels = (out / "quake_drt" / "bench_rays_by_pixels.csv").read_text()
     assert by_pixels.splitlines()[0] == "resolution,primary_ratio,primary_ms" and "640x360" in by_pixels
@@ -175,3 +178,7 @@ def test06_the_bench_table_says_which_stages_meet_the_ratio_goal():
     assert report._ratio_goal_text(rows[:1]) == "Goal stage / raw >= 0.9: met by every stage (primary (0.910))."
     assert report._ratio_goal_text(rows[1:2]).endswith("met by no stage (secondary (0.600)).")
     assert report._ratio_goal_text([]) == ""
+    # a range of the repeats is named only where it straddles the goal
+    rows[0]["_range"], rows[1]["_range"] = [0.905, 0.93], [0.5, 0.91]
+    assert report._ratio_goal_text(rows[:2]) == ("Goal stage / raw >= 0.9: met by primary (0.910); not met by "
+                                                 "secondary (0.600; repeats 0.500-0.910, on both sides of the goal).")
