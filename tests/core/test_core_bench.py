@@ -33,16 +33,17 @@ def test01_tracing_bench_compares_suite_and_raw_on_the_backends_own_memory(backe
 @pytest.mark.parametrize("backend", BACKENDS)
 def test01b_every_ratio_of_medians_comes_with_the_range_of_its_paired_repeats(backend):
     """One repeat's ratio (its two calls ran next to each other), lowest and highest: the ratio of the medians lies
-    between them, as it must for any paired samples."""
+    between them, as it must for any paired samples (up to the last bits: the two are computed in different
+    orders)."""
     out = bench.run(load("cornell"), backend, max_rays=20_000, repeats=5, resolution=(160, 90))
     for query in ("occluded", "intersect"):
         lo, hi = out[query]["ratio_range"]
-        assert 0 < lo <= out[query]["ratio"] <= hi
+        assert 0 < lo * (1 - 1e-9) <= out[query]["ratio"] <= hi * (1 + 1e-9)
     core = bench.core(load("cornell"), backend, (32, 18), repeats=3, area_samples=1)
     for key in ("gbuffer_over_raw_intersect", "visibility_raw_over_pass"):
         if key in core:
             lo, hi = core[key + "_range"]
-            assert 0 < lo <= core[key] <= hi
+            assert 0 < lo * (1 - 1e-9) <= core[key] <= hi * (1 + 1e-9)
 
 
 def test01c_paired_range_takes_each_repeat_as_a_pair():
