@@ -281,7 +281,7 @@ def test09_section_writes_its_files_and_reads_the_stored_benchmark_without_runni
     bench.store(tmp_path / "results", {
         "throughput": {"backend": "embree", "scene": "living_room", "resolution": [640, 360], "lights": 3,
                        "rays": 1000, "repeats": 7, "stage_rays_per_s": 9e6, "raw_rays_per_s": 1e7, "ratio": 0.9,
-                       "goal": 0.9},
+                       "ratio_range": [0.85, 0.93], "goal": 0.9},
         "linearity": {"scene": "arena", "backend": "embree", "repeats": 3, "points": [
             {"resolution": [16, 9], "pixels": 144, "lights": n, "pixel_lights": 144 * n, "rays": 144 * n,
              "gbuffer_ms": 1.0, "visibility_ms": 0.01 * n, "server_ms": 1.0 + 0.01 * n} for n in (1, 2, 3)],
@@ -289,6 +289,7 @@ def test09_section_writes_its_files_and_reads_the_stored_benchmark_without_runni
                     "server_ms": {"ns_per_pixel_light": 69.4, "intercept_ms": 1.0, "r2": 1.0}}}})
     page = report.section(frames, dirs, out_dir=out)
     assert "ratio <b>0.900</b>" in page and "69.40 ns per pixel·light" in page
+    assert "next to each other, gave 0.850-0.930; on both sides of the goal" in page  # one repeat's ratio, lo-hi
     assert "Scene <b>arena</b>, backend <b>embree</b>" in page and "Recorded on host" in page
     assert (out / report.SUBDIR / "server_work_vs_pixel_lights.png").is_file()
 
