@@ -169,7 +169,8 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
     Mitsuba llvm/cuda (device path): the pass from a device G-buffer (ray generation, traversal and bits in one
     kernel per 32 lights, packing, and the read-back of the packed bitmap the stage does) against Mitsuba's
     ``ray_test`` on the same rays held in device memory (``raw``: the backend's own rate), and, for reference,
-    against the same rays fed from numpy (``numpy_raw``).
+    against the same rays fed from numpy (``numpy_raw``). ``ratio_range``: the lowest and highest ratio of one
+    repeat, whose stage and raw calls ran next to each other.
     """
     from methods.visibility_bitmap.method import visibility_pass
     from suite.core.gbuffer import has_device, render_gbuffer
