@@ -16,7 +16,7 @@ import pandas as pd
 
 from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, esc, load_bench, lo_hi_text, table_html
+from suite.harness.reporting import SectionFiles, esc, load_bench, lo_hi_text, straddles, table_html
 from suite.harness.verdicts import Tolerance
 
 METHOD = "layered_pvs"
@@ -325,8 +325,7 @@ def ratio_goal_text(rows: list) -> str:
         text = (f"{stage} {min(v for _, v in got):.3f}-{max(v for _, v in got):.3f} of raw, "
                 f"{met} of {len(got)} rows at >= {RAY_RATE_GOAL}")
         # rows where one update's ratio fell on the other side of the goal than another's (``*_ratio_range``)
-        split = sum(1 for r in rows if len(r.get(f"{stage}_ratio_range") or ()) == 2
-                    and r[f"{stage}_ratio_range"][0] < RAY_RATE_GOAL <= r[f"{stage}_ratio_range"][1])
+        split = sum(straddles(r.get(f"{stage}_ratio_range"), RAY_RATE_GOAL) for r in rows)
         text += f", {split} of {len(got)} with updates on both sides of the goal" if split else ""
         parts.append(text + (f" (every row from {from_size} up)" if from_size and met < len(got) else
                              "" if met == len(got) else " (not at the largest size)"))

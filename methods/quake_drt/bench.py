@@ -85,18 +85,18 @@ def _against_raw(stage, log, tracer, repeats: int, numpy_raw, records=()) -> dic
     turn (medians). On a Dr.Jit backend raw is the backend on rays in device memory (``log`` uploaded once, here:
     :func:`suite.core.trace.recording.device_replay`), and the numpy-fed raw entry points (``numpy_raw``) are timed
     beside it as ``raw_numpy_ms``; elsewhere raw is ``numpy_raw``."""
-    from suite.core.trace.bench import interleaved_times, paired_range
+    from suite.core.trace.bench import interleaved_times, medians, paired_range
     from suite.core.trace.recording import device_replay
 
     dev = getattr(tracer, "device", None)
     if dev is None:
         times = interleaved_times([("stage", stage), ("raw", numpy_raw)], repeats)
-        t = {k: float(np.median(v)) for k, v in times.items()}
+        t = medians(times)
         return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "raw entry points",
                 "time_ratio_range": paired_range(times["raw"], times["stage"])}
     _, replay = device_replay(dev, log, records)
     times = interleaved_times([("stage", stage), ("raw", replay), ("raw_numpy", numpy_raw)], repeats)
-    t = {k: float(np.median(v)) for k, v in times.items()}
+    t = medians(times)
     return {"ms": 1e3 * t["stage"], "raw_ms": 1e3 * t["raw"], "raw": "device-resident rays",
             "raw_numpy_ms": 1e3 * t["raw_numpy"], "time_ratio_range": paired_range(times["raw"], times["stage"])}
 

@@ -23,7 +23,7 @@ import pandas as pd
 
 from suite.core.trace.bench import RAY_RATE_GOAL
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, load_bench, lo_hi_text, esc, table_html
+from suite.harness.reporting import SectionFiles, load_bench, lo_hi_text, esc, straddles, table_html
 from suite.harness.verdicts import Claim, Tolerance
 
 SUBDIR = "quake_drt"
@@ -481,9 +481,8 @@ def _ratio_goal_text(rows: list) -> str:
     where one repeat's ratio fell on the other side of the goal, their range over the repeats)."""
     def text(r):
         lo_hi = r.get("_range")
-        undecided = lo_hi and lo_hi[0] < RAY_RATE_GOAL <= lo_hi[1]
         return f"{r['stage']} ({r['stage / raw']:.3f}" + (
-            f"; repeats {lo_hi[0]:.3f}-{lo_hi[1]:.3f}, on both sides of the goal)" if undecided else ")")
+            f"; repeats {lo_hi_text(lo_hi)}, on both sides of the goal)" if straddles(lo_hi, RAY_RATE_GOAL) else ")")
 
     ok = [text(r) for r in rows if r["stage / raw"] >= RAY_RATE_GOAL]
     short = [text(r) for r in rows if not r["stage / raw"] >= RAY_RATE_GOAL]

@@ -40,7 +40,7 @@ import numpy as np
 
 from methods.visibility_bitmap import bitmap as bm
 from methods.visibility_bitmap import codecs
-from suite.core.trace.bench import paired_range
+from suite.core.trace.bench import interleaved_times, paired_range
 from suite.core.trace.recording import RecordingTracer
 from suite.harness.reporting import range_text
 
@@ -155,12 +155,6 @@ def loss_sweep(scene, tracer, resolution, frames: int, loss_rates, repairs=("pre
 
 # ------------------------------------------------------------------------------------------------ throughput
 
-def _timed(fn) -> float:
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0
-
-
 def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: str = "paper32",
                repeats: int = 7) -> dict:
     """Rays/s of the method's visibility pass against the raw backend on the same rays (goal: ratio >= 0.90).
@@ -188,12 +182,9 @@ def throughput(scene, tracer, resolution=(640, 360), t_s: float = 0.5, layout: s
     def stage():
         visibility_pass(g, lights, tracer, layout)
 
-    raw = recorder.replay
-    stage(), raw()  # warm-up (page faults, caches)
-    stage_s, raw_s = [], []
-    for _ in range(max(repeats, 1)):  # interleaved: machine noise hits both alike
-        stage_s.append(_timed(stage))
-        raw_s.append(_timed(raw))
+    # interleaved after one warm-up call each (page faults, caches): machine noise hits both alike
+    times = interleaved_times([("stage", stage), ("raw", recorder.replay)], repeats)
+    stage_s, raw_s = times["stage"], times["raw"]
     stage_rps = rays / float(np.median(stage_s))
     raw_rps = rays / float(np.median(raw_s))
     return {"scene": scene.name, "resolution": list(resolution), "lights": len(lights), "layout": layout,
@@ -228,12 +219,9 @@ def _throughput_device(scene, tracer, resolution, t_s, layout, repeats) -> dict:
         for o, d, length in host_rays:
             tracer.raw_occluded(o, d, length)
 
-    stage(), raw(), numpy_raw()  # warm-up (kernel compilation, allocations)
-    stage_s, raw_s, np_s = [], [], []
-    for _ in range(max(repeats, 1)):  # interleaved: machine noise hits all alike
-        stage_s.append(_timed(stage))
-        raw_s.append(_timed(raw))
-        np_s.append(_timed(numpy_raw))
+    # interleaved after one warm-up call each (kernel compilation, allocations): machine noise hits all alike
+    times = interleaved_times([("stage", stage), ("raw", raw), ("numpy_raw", numpy_raw)], repeats)
+    stage_s, raw_s, np_s = times["stage"], times["raw"], times["numpy_raw"]
     stage_rps = rays / float(np.median(stage_s))
     raw_rps = rays / float(np.median(raw_s))
     np_rps = rays / float(np.median(np_s))

@@ -24,7 +24,8 @@ import numpy as np
 import pandas as pd
 
 from suite.harness import verdicts
-from suite.harness.reporting import SectionFiles, load_bench, esc, figure, label_axes, slug, table_html
+from suite.harness.reporting import (SectionFiles, load_bench, esc, figure, label_axes, lo_hi_text, slug, straddles,
+                                     table_html)
 from suite.harness.verdicts import Tolerance
 
 SUBDIR = "visibility_bitmap"
@@ -871,10 +872,10 @@ def _quality_part(frames, run_dirs, files: SectionFiles) -> str:
 def _repeats_range(t: dict) -> str:
     """The ratio's lowest and highest value over the bench's repeats (a stage call and the raw call next to it)."""
     lo_hi = t.get("ratio_range")
-    if not lo_hi:
+    if not lo_hi_text(lo_hi):
         return ""
-    side = "; on both sides of the goal" if lo_hi[0] < t["goal"] <= lo_hi[1] else ""
-    return f"; one repeat's stage and raw calls, which ran next to each other, gave {lo_hi[0]:.3f}-{lo_hi[1]:.3f}{side}"
+    side = "; on both sides of the goal" if straddles(lo_hi, t["goal"]) else ""
+    return f"; one repeat's stage and raw calls, which ran next to each other, gave {lo_hi_text(lo_hi)}{side}"
 
 
 def _bench_part(bench, files: SectionFiles) -> str:

@@ -54,6 +54,11 @@ def lo_hi_text(lo_hi, digits: int = 3) -> str:
     return f"{lo_hi[0]:.{digits}f}-{lo_hi[1]:.{digits}f}"
 
 
+def straddles(lo_hi, goal: float) -> bool:
+    """Whether a bench's ``..._range`` has repeats on both sides of ``goal`` (the run does not decide it)."""
+    return bool(lo_hi_text(lo_hi)) and lo_hi[0] < goal <= lo_hi[1]
+
+
 def range_text(lo_hi, digits: int = 3) -> str:
     """`` (repeats lo-hi)`` after a printed ratio (:func:`lo_hi_text`), or nothing."""
     text = lo_hi_text(lo_hi, digits)

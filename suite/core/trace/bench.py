@@ -78,10 +78,11 @@ def interleaved_times(pairs, repeats: int) -> dict:
 
 def interleaved(pairs, repeats: int) -> dict:
     """Median seconds of each named function, the functions run in turn ``repeats`` times (after one warm-up)."""
-    return _medians(interleaved_times(pairs, repeats))
+    return medians(interleaved_times(pairs, repeats))
 
 
-def _medians(times: dict) -> dict:
+def medians(times: dict) -> dict:
+    """Median seconds per name of :func:`interleaved_times`'s calls."""
     return {name: float(np.median(t)) for name, t in times.items()}
 
 
@@ -125,7 +126,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
         out["interface"] = "numpy"
         for query, (suite_fn, raw_fn) in numpy_fns.items():
             times = interleaved_times([("suite", suite_fn), ("raw", raw_fn)], repeats)
-            t = _medians(times)
+            t = medians(times)
             q = queries(suite_fn)
             out[query] = {"suite_rays_per_s": n / t["suite"], "raw_rays_per_s": n / t["raw"],
                           "ratio": t["raw"] / t["suite"], "ratio_range": paired_range(times["raw"], times["suite"]),
@@ -145,7 +146,7 @@ def run(scene, backend: str = "embree", max_rays: int = 500_000, repeats: int = 
         # Each pair interleaved on its own: a numpy-fed call leaves the allocator and the copy engine busy with its
         # large transfers, which the call timed right after it would absorb.
         times = interleaved_times([("suite", device_fns[query][0]), ("raw", device_fns[query][1])], repeats)
-        t = _medians(times)
+        t = medians(times)
         t.update(interleaved([("numpy_suite", numpy_fns[query][0]), ("numpy_raw", numpy_fns[query][1])], repeats))
         q = queries(device_fns[query][0])
         # device time alone (kernel history): what is left of the gap once the host's per-call costs are taken out
@@ -216,7 +217,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
         ro, rd, _, rlen = as_rays(o32, d32, 0.0, np.inf, tracer.shift)
         times = interleaved_times([("gbuffer", lambda: render_gbuffer(scene, tracer, t_s, (w, h), prev_t_s)),
                                    ("raw", lambda: tracer.raw_intersect(ro, rd, rlen.copy()))], repeats)
-        t = _medians(times)
+        t = medians(times)
         gb = stage("gbuffer", 1e3 * t["gbuffer"], rays)
         stage("raw_intersect", 1e3 * t["raw"], pixels)
         out["gbuffer_over_raw_intersect"] = t["gbuffer"] / t["raw"]
@@ -261,7 +262,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
 
     g = gbuffer()
     times = interleaved_times([("gbuffer", gbuffer), ("raw", raw_intersect)], repeats)
-    t = _medians(times)
+    t = medians(times)
     k_gb, k_raw = dev.kernel_ms(gbuffer, repeats), dev.kernel_ms(raw_intersect, repeats)
     gb = stage("gbuffer", 1e3 * t["gbuffer"], g.rays, note="fused: one kernel", kernel_ms=k_gb)
     stage("raw_intersect", 1e3 * t["raw"], pixels, note="the same camera rays, held in device memory", kernel_ms=k_raw)
@@ -279,7 +280,7 @@ def core(scene, backend: str, resolution=(1920, 1080), t_s: float = 0.5, repeats
             dev.eval(*[tracer.mscene.ray_test(r, coherent=False) for r, _ in rays_dev])
 
         times = interleaved_times([("pass", visibility), ("raw", raw_occluded)], repeats)
-        t = _medians(times)
+        t = medians(times)
         k_pass, k_raw = dev.kernel_ms(visibility, repeats), dev.kernel_ms(raw_occluded, repeats)
         stage("visibility", 1e3 * t["pass"], vis_rays, kernel_ms=k_pass)
         stage("raw_occluded", 1e3 * t["raw"], vis.rays, note="the pass's rays, held in device memory", kernel_ms=k_raw)
