@@ -5,6 +5,7 @@ file path, so a method folder need not be an installed package.
 """
 from __future__ import annotations
 
+import difflib
 import importlib.util
 import inspect
 import itertools
@@ -55,6 +56,19 @@ class MethodSpec:
         return dict(self.config.get("doc", {}))
 
     @property
+    def aliases(self) -> dict:
+        """``[aliases]``: the paper's own names for parameters (the thesis's console commands), each accepted by
+        ``--set`` in any letter case (as Quake III's console takes its variables) and stored under the parameter's
+        name, so every spelling makes the same run."""
+        aliases = dict(self.config.get("aliases", {}))
+        defaults = self.defaults
+        for alias, target in aliases.items():
+            if alias in defaults or target not in defaults:
+                raise UserError(f"method '{self.name}': alias '{alias}' must name a parameter of [defaults] and not "
+                                f"be one, got '{alias}' = {target!r}")
+        return aliases
+
+    @property
     def variants(self) -> list[str]:
         names = ["default"]
         if "paper" in self.config:
@@ -72,9 +86,15 @@ class MethodSpec:
 
     def params(self, variant: str = "default", overrides: dict | None = None) -> dict:
         """[defaults] ← variant ← overrides, with each override checked against the defaults' keys and types."""
-        params = self.defaults
+        params, aliases, given = self.defaults, self.aliases, {}
+        folded = {alias.lower(): target for alias, target in aliases.items()}
         for key, value in {**self.variant_overrides(variant), **(overrides or {})}.items():
-            params[key] = check_param(self.name, params, key, value)
+            name = key if key in params else folded.get(key.lower(), key)
+            if name in given and given[name][1] != value:  # one parameter under both its names, differently
+                raise UserError(f"parameter '{name}' of method '{self.name}' is given twice: {given[name][0]} = "
+                                f"{given[name][1]!r} and {key} = {value!r}")
+            given[name] = (key, value)
+            params[name] = check_param(self.name, params, name, value, aliases)
         return params
 
     def has_module(self, part: str) -> bool:
@@ -133,11 +153,13 @@ class MethodSpec:
         return points
 
 
-def check_param(method: str, defaults: dict, key: str, value):
-    """Validates one parameter override against [defaults]: known key, compatible type."""
+def check_param(method: str, defaults: dict, key: str, value, aliases: dict | None = None):
+    """Validates one parameter override against [defaults]: known key, compatible type. An unknown key's error
+    names the closest known parameter or alias (``aliases``: alias → parameter)."""
     if key not in defaults:
         known = ", ".join(sorted(defaults)) or "none"
-        raise UserError(f"unknown parameter '{key}' for method '{method}' (known: {known})")
+        raise UserError(f"unknown parameter '{key}' for method '{method}'{_suggestion(key, defaults, aliases or {})} "
+                        f"(known: {known})")
     default = defaults[key]
     if isinstance(default, bool):
         ok = isinstance(value, bool)
@@ -151,6 +173,16 @@ def check_param(method: str, defaults: dict, key: str, value):
     if not ok:
         raise UserError(f"parameter '{key}' of method '{method}' must be {type(default).__name__}, got {value!r}")
     return value
+
+
+def _suggestion(key: str, defaults: dict, aliases: dict) -> str:
+    """", did you mean 'x'?" for the known parameter or alias closest to ``key`` (case aside), or ''."""
+    names = {n.lower(): n for n in [*defaults, *aliases]}
+    close = difflib.get_close_matches(key.lower(), list(names), n=1, cutoff=0.75)
+    if not close:
+        return ""
+    name = names[close[0]]
+    return f", did you mean '{name}'" + (f" (the paper's name for '{aliases[name]}')" if name in aliases else "") + "?"
 
 
 def parse_set_value(text: str):

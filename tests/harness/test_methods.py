@@ -27,6 +27,40 @@ def test03_every_default_is_documented_and_variants_override_known_keys(name):
 
 
 @pytest.mark.parametrize("name", METHODS)
+def test03b_every_alias_names_a_parameter_and_sets_it(name):
+    spec = registry.get(name)
+    for alias, target in spec.aliases.items():  # raises UserError on an alias of no parameter
+        assert spec.params(overrides={alias: spec.defaults[target]}) == spec.defaults
+
+
+def test03c_an_alias_and_its_parameter_given_differently_or_a_misspelled_name_are_user_errors():
+    from suite.errors import UserError
+
+    spec = registry.get("quake_drt")
+    with pytest.raises(UserError, match="'num_random_dl' of method 'quake_drt' is given twice: rt_numRandomDL = 2 "
+                                        "and num_random_dl = 3"):
+        spec.params(overrides={"rt_numRandomDL": 2, "num_random_dl": 3})
+    assert spec.params(overrides={"rt_numRandomDL": 3, "num_random_dl": 3})["num_random_dl"] == 3
+    with pytest.raises(UserError, match="unknown parameter 'num_randm_dl' .*did you mean 'num_random_dl'\\?"):
+        spec.params(overrides={"num_randm_dl": 3})
+    with pytest.raises(UserError, match="did you mean 'rt_denoiser' \\(the paper's name for 'denoiser'\\)\\?"):
+        spec.params(overrides={"rt_denoise": True})
+    with pytest.raises(UserError, match="unknown parameter 'zzz' for method 'quake_drt' \\(known: "):
+        spec.params(overrides={"zzz": 1})
+
+
+def test03d_an_alias_that_names_no_parameter_is_a_config_error():
+    from suite.errors import UserError
+
+    bad = registry.MethodSpec("x", registry.METHODS_DIR, {"defaults": {"a": 1}, "aliases": {"b": "c"}})
+    with pytest.raises(UserError, match="alias 'b' must name a parameter"):
+        bad.params()
+    clash = registry.MethodSpec("x", registry.METHODS_DIR, {"defaults": {"a": 1}, "aliases": {"a": "a"}})
+    with pytest.raises(UserError, match="alias 'a' must name a parameter"):
+        clash.params()
+
+
+@pytest.mark.parametrize("name", METHODS)
 # compare-full is compare's matrix with more scenes, nets and frames: validating compare covers each method's part.
 @pytest.mark.parametrize("preset", [p for p in registry.PRESETS if p != "compare-full"])
 def test04_every_preset_point_validates(name, preset):

@@ -67,3 +67,24 @@ def test04_depth_of_field_rays_meet_at_the_focal_plane_and_spread_elsewhere(room
         ends.append(o + d * (3 * focal / (d @ forward))[:, None])  # three times as far: out of focus
     spread = np.linalg.norm(ends[0] - ends[1], axis=1)
     assert spread.mean() > 0.5 * aperture
+
+
+# Table 6.1's console commands that set a value, by the thesis's name.
+THESIS_COMMANDS = {"rt_illumination": False, "rt_cullLights": False, "rt_numRandomDL": 4, "rt_antialiasing": False,
+                   "rt_softshadows": False, "rt_dof": True, "rt_aperture": 0.05, "rt_focallength": 2.5,
+                   "rt_denoiser": False, "rt_taa": False}
+
+
+def test05_every_thesis_switch_is_a_set_under_its_own_name_and_makes_the_same_run():
+    from suite.harness import registry, runner
+
+    spec = registry.get("quake_drt")
+    assert set(THESIS_COMMANDS) == set(spec.aliases)
+    for command, value in THESIS_COMMANDS.items():
+        name = spec.aliases[command]
+        assert spec.params()[name] != value, f"{command}: pick a value that is not the default"
+        by_thesis = runner.make_config("quake_drt", scene="cornell", set_values={command: value})
+        by_suite = runner.make_config("quake_drt", scene="cornell", set_values={name: value})
+        assert by_thesis == by_suite and by_thesis["params"][name] == value
+        # Quake III's console takes its variables in any letter case
+        assert runner.make_config("quake_drt", scene="cornell", set_values={command.lower(): value}) == by_suite
