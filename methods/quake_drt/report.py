@@ -224,18 +224,9 @@ _NO_BENCH = ("<p><em>No stored benchmark. <code>splitbench bench quake_drt</code
 
 def at_least(id: str, statement: str, source: str, bound: float, value: float, unit: str, why: str,
              setting: dict, note: str = "", suite_source: str = "run") -> Claim:
-    """A one-sided claim ("more than double", "better than"): reproduces when the measured ``value`` is at least
-    ``bound``. :mod:`suite.harness.verdicts` judges two-sided tolerances, so the claim is built here with a zero
-    absolute tolerance below the bound and the bound as the paper's value."""
-    ok = value >= bound
-    text = (f"measured {verdicts.format_value(value, unit)}, {'at least' if ok else 'below'} the bound "
-            f"{verdicts.format_value(bound, unit)} that the paper's statement implies"
-            + ("" if ok else f" (short by {verdicts.format_value(bound - value, unit)})") + ".")
-    return Claim(id=id, method=METHOD, statement=statement, source=source, paper_value=float(bound), unit=unit,
-                 suite_value=float(value), suite_source=suite_source, setting=setting,
-                 tolerance=Tolerance(absolute=0.0, why=why),
-                 kind=verdicts.REPRODUCES if ok else verdicts.DOES_NOT_REPRODUCE,
-                 explanation=" ".join(p for p in (text, note) if p))
+    """:func:`suite.harness.verdicts.at_least` for this method: reproduces when ``value`` is at least ``bound``."""
+    return verdicts.at_least(id, statement, source, bound, value, unit, why, setting=setting, note=note,
+                             suite_source=suite_source, method=METHOD)
 
 
 def _ratio(a: float, b: float) -> float:

@@ -3,7 +3,8 @@
 A method's report checks the claims of its paper. Each check gives a :class:`Claim` with one of five kinds:
 
 ``reproduces`` (:data:`REPRODUCES`)
-    The suite measured the value and it lies within a stated tolerance of the paper's (:func:`judge`).
+    The suite measured the value and it lies within a stated tolerance of the paper's (:func:`judge`), or on the
+    stated side of a bound (:func:`at_least`).
 ``does not reproduce`` (:data:`DOES_NOT_REPRODUCE`)
     The suite measured the value and it lies outside the tolerance; the verdict says by how much (:func:`judge`).
 ``consistent by calibration`` (:data:`BY_CALIBRATION`)
@@ -206,6 +207,27 @@ def judge(id: str, statement: str, source: str, paper_value: float, suite_value:
     return Claim(id=id, method=method, statement=statement, source=source, paper_value=float(paper_value),
                  unit=unit, suite_value=float(suite_value), suite_source=suite_source, setting=dict(setting or {}),
                  tolerance=tolerance, kind=kind, explanation=_sentence(text, note))
+
+
+def at_least(id: str, statement: str, source: str, bound: float, value: float, unit: str, why: str, *,
+             setting: dict | None = None, suite_source: str = "run", method: str = "", note: str = "") -> Claim:
+    """A one-sided claim ("more than double", "higher with dynamic lights"): :data:`REPRODUCES` when the measured
+    ``value`` is at least ``bound``, else :data:`DOES_NOT_REPRODUCE` with the shortfall. :func:`judge` compares
+    two-sided, so the claim carries the bound as the paper's value and a zero absolute tolerance whose ``why`` says
+    what the bound stands for. A ``value`` that is not finite (a ratio over a zero) is :data:`NOT_MEASURABLE`."""
+    if not _finite(bound):
+        raise ValueError(f"claim '{id}': at_least() needs a finite bound, got {bound!r}")
+    if not _finite(value):
+        return not_measurable(id, statement, source, f"the runs give no finite value ({value!r}) for {_clause(why)}",
+                              paper_value=bound, unit=unit, setting=setting, method=method, note=note)
+    ok = float(value) >= float(bound)
+    text = (f"measured {format_value(value, unit)}, {'at least' if ok else 'below'} the bound "
+            f"{format_value(bound, unit)} that the paper's statement implies"
+            + ("" if ok else f" (short by {format_value(float(bound) - float(value), unit)})") + ".")
+    return Claim(id=id, method=method, statement=statement, source=source, paper_value=float(bound), unit=unit,
+                 suite_value=float(value), suite_source=suite_source, setting=dict(setting or {}),
+                 tolerance=Tolerance(absolute=0.0, why=why), kind=REPRODUCES if ok else DOES_NOT_REPRODUCE,
+                 explanation=_sentence(text, note))
 
 
 def by_calibration(id: str, statement: str, source: str, calibrated_input: str, *, paper_value=None,

@@ -48,6 +48,24 @@ def test02_a_measured_value_outside_the_tolerance_does_not_reproduce_and_says_by
     assert claim.explanation.endswith("our codec is faster than the link.")
 
 
+def test02b_a_bound_reproduces_on_its_side_only_and_a_value_that_is_not_finite_is_not_measurable():
+    why = "an ordering: dynamic minus static DSSIM must be positive"
+    above = verdicts.at_least("x.order", "dynamic lights raise the error", "Table 7.1", 0.0, 0.021, "", why,
+                              setting=SETTING, method="m")
+    assert above.kind == verdicts.REPRODUCES and above.tolerance.why == why
+    assert "measured 0.021, at least the bound 0" in above.explanation
+    at = verdicts.at_least("x.order", "s", "src", 1.0, 1.0, "x", why)
+    assert at.kind == verdicts.REPRODUCES
+    below = verdicts.at_least("x.order", "s", "src", 0.0, -0.01, "", why, note="the lights barely move.")
+    assert below.kind == verdicts.DOES_NOT_REPRODUCE
+    assert "below the bound 0" in below.explanation and "(short by 0.01)" in below.explanation
+    assert below.explanation.endswith("the lights barely move.")
+    nan = verdicts.at_least("x.order", "s", "src", 1.0, float("nan"), "x", why)
+    assert nan.kind == verdicts.NOT_MEASURABLE and nan.suite_value is None and "no finite value" in nan.explanation
+    with pytest.raises(ValueError, match="finite bound"):
+        verdicts.at_least("x.order", "s", "src", float("inf"), 1.0, "x", why)
+
+
 def test03_a_relative_tolerance_scales_with_the_papers_value_and_its_edge_reproduces():
     tol = Tolerance(relative=0.10)
     assert verdicts.judge("x.ms", "s", "src", 87.33, 87.33 * 1.1, "ms", tol).kind == verdicts.REPRODUCES

@@ -250,3 +250,58 @@ def test11_load_routing_runner_and_defaults(tmp_path, cache):
     eye = scene.camera.pose_at(0.0).position
     lo, hi = scene.bounds()
     assert np.linalg.norm(eye - 0.5 * (lo + hi)) > 0.5 * np.linalg.norm(hi - lo)
+
+
+def test12_a_sidecar_extends_a_project_sidecar_replacing_whole_tables(tmp_path, monkeypatch):
+    from suite.core.scene.obj import sidecar as sc_mod
+
+    monkeypatch.setattr(sc_mod, "DATA_DIR", tmp_path)
+    base = tmp_path / "base.toml"
+    base.write_text("""[scene]
+name = "base"
+title = "the base"
+unit_m = 0.5
+[materials.stone]
+albedo = [0.2, 0.3, 0.4]
+[objects]
+"*" = "stone"
+[[lights]]
+name = "moving"
+position = [0, 0, 1]
+intensity = 2.0
+keys = [{ t = 0.0, position = [0, 0, 1] }, { t = 2.0, position = [1, 0, 1] }]
+[[lights]]
+name = "second"
+position = [0, 1, 0]
+intensity = 1.0
+[camera]
+position = [0, 1, 2]
+""")
+    child = tmp_path / "child.toml"
+    child.write_text("""[scene]
+name = "child"
+extends = "base"
+title = "the base, lights still"
+[[lights]]
+name = "still"
+position = [0, 0, 1]
+intensity = 2.0
+""")
+    a, b = sc_mod.read_sidecar(base), sc_mod.read_sidecar(child)
+    assert b.name == "child" and b.scene["title"] == "the base, lights still" and b.unit_m == 0.5
+    assert b.materials == a.materials and b.objects == a.objects and b.camera == a.camera
+    assert [lt["name"] for lt in b.lights] == ["still"] and "keys" not in b.lights[0]
+    # the child's identity follows its base's text too
+    before = b.text_sha256
+    base.write_text(base.read_text().replace("0.2, 0.3, 0.4", "0.25, 0.3, 0.4"))
+    assert sc_mod.read_sidecar(child).text_sha256 != before
+    assert sorted(sc_mod.project_sidecars()) == ["base", "child"]
+    for extends, message in (("nowhere", "extends 'nowhere', which is no other project sidecar"),
+                             ("child", "extends 'child', which is no other project sidecar")):
+        child.write_text(f'[scene]\nname = "child"\nextends = "{extends}"\n')
+        with pytest.raises(UserError, match=message):
+            sc_mod.read_sidecar(child)
+    (tmp_path / "grandchild.toml").write_text('[scene]\nname = "grandchild"\nextends = "child"\n')
+    child.write_text('[scene]\nname = "child"\nextends = "base"\n')
+    with pytest.raises(UserError, match="extends 'child', which extends another sidecar \\(one level only\\)"):
+        sc_mod.read_sidecar(tmp_path / "grandchild.toml")

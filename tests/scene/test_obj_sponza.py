@@ -112,3 +112,19 @@ def test05_a_file_with_another_hash_is_an_error_naming_both(tmp_path, monkeypatc
     msg = str(info.value)
     assert "dabrovic_sponza.toml" in msg and str(copy) in msg and SHA256 in msg
     assert hashlib.sha256(copy.read_bytes()).hexdigest() in msg
+
+
+def test06_the_static_version_has_the_same_model_and_camera_and_holds_the_lights_where_they_start(sponza):
+    """dabrovic_sponza_static: seed 002's static Sponza beside the moving-lights one (the same first frame)."""
+    static = load("dabrovic_sponza_static")
+    assert static.name == "dabrovic_sponza_static" and not static.light_animations and sponza.light_animations
+    np.testing.assert_array_equal(static.positions, sponza.positions)
+    np.testing.assert_array_equal(static.face_material, sponza.face_material)
+    assert [(m.name, tuple(m.albedo)) for m in static.materials] == [(m.name, tuple(m.albedo))
+                                                                      for m in sponza.materials]
+    start = [(lt.position.tolist(), lt.intensity.tolist()) for lt in sponza.lights_at(0.0)]
+    for t in np.linspace(0.0, sponza.camera.duration_s, 9):
+        assert [(lt.position.tolist(), lt.intensity.tolist()) for lt in static.lights_at(t)] == start
+        a, b = sponza.camera.pose_at(t), static.camera.pose_at(t)
+        np.testing.assert_array_equal(a.position, b.position)
+        np.testing.assert_array_equal(a.target, b.target)

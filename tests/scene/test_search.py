@@ -40,7 +40,9 @@ def test03_nothing_outside_the_search_path_is_consulted(monkeypatch):
     suite does not fall back to a shared folder beside the checkout."""
     monkeypatch.delenv(ENV_VAR, raising=False)
     assert list_scenes()["dabrovic_sponza"].startswith("unavailable:")
-    assert sorted(p.name for p in DATA_DIR.iterdir() if not p.name.startswith(".")) == ["dabrovic_sponza.toml"]
+    assert list_scenes()["dabrovic_sponza_static"].startswith("unavailable:")
+    assert sorted(p.name for p in DATA_DIR.iterdir() if not p.name.startswith(".")) == [
+        "dabrovic_sponza.toml", "dabrovic_sponza_static.toml"]
 
 
 def test04_scene_found_on_the_path_by_its_sidecar_hash(tmp_path, monkeypatch):

@@ -5,6 +5,8 @@ Format (docs/scenes.md has the full description):
 ```toml
 [scene]
 name = "dabrovic_sponza"            # project sidecars: the name list_scenes() shows
+extends = "other_scene"             # optional: start from that project sidecar; this file's tables replace its
+                                    # tables ([scene] key by key, the others whole)
 title = "..."                       # one-line description
 file = "dabrovic_sponza/sponza.obj" # project sidecars: the OBJ's path on the scene search path
 sha256 = "67d1b2..."                # the OBJ file's SHA-256 (required in project sidecars)
@@ -50,7 +52,7 @@ from suite.errors import UserError
 from suite.core.scene.search import DATA_DIR
 
 SIDECAR_SUFFIX = ".splitbench.toml"
-SCENE_KEYS = {"name", "title", "file", "sha256", "licence", "license", "unit_m", "up", "description"}
+SCENE_KEYS = {"name", "title", "file", "sha256", "licence", "license", "unit_m", "up", "description", "extends"}
 LIGHT_KEYS = {"name", "position", "intensity", "keys"}
 CAMERA_KEYS = {"position", "yaw_deg", "pitch_deg", "fov_deg", "resolution", "fps", "moves"}
 MATERIAL_FIELDS = {"kind", "albedo", "emission", "specular_reflectance", "specular_transmittance", "int_ior",
@@ -115,8 +117,7 @@ def _vec(path, where: str, value, n: int = 3) -> np.ndarray:
     return v
 
 
-def read_sidecar(path: Path) -> Sidecar:
-    """Parses and checks a sidecar file (unknown keys are errors, so a typo does not pass unnoticed)."""
+def _read_doc(path: Path) -> tuple[bytes, dict]:
     try:
         raw = path.read_bytes()
         doc = tomllib.loads(raw.decode("utf-8"))
@@ -127,6 +128,30 @@ def read_sidecar(path: Path) -> Sidecar:
     unknown = set(doc) - TOP_KEYS
     if unknown:
         raise _err(path, f"unknown table '{sorted(unknown)[0]}' (allowed: {', '.join(sorted(TOP_KEYS))})")
+    return raw, doc
+
+
+def _extended(path: Path, raw: bytes, doc: dict) -> tuple[bytes, dict]:
+    """``doc`` on top of the project sidecar its ``[scene] extends`` names (one level: a base extends nothing), and
+    the bytes of both files (the scene's identity changes with either)."""
+    base_name = doc.get("scene", {}).get("extends")
+    if base_name is None:
+        return raw, doc
+    base_path = project_sidecars().get(str(base_name))
+    if base_path is None or base_path.resolve() == path.resolve():
+        raise _err(path, f"[scene] extends '{base_name}', which is no other project sidecar (known: "
+                         f"{', '.join(sorted(project_sidecars()))})")
+    base_raw, base = _read_doc(base_path)
+    if "extends" in base.get("scene", {}):
+        raise _err(path, f"[scene] extends '{base_name}', which extends another sidecar (one level only)")
+    merged = {**base, **{k: v for k, v in doc.items() if k != "scene"}}
+    merged["scene"] = {**base.get("scene", {}), **doc.get("scene", {})}
+    return base_raw + b"\0" + raw, merged
+
+
+def read_sidecar(path: Path) -> Sidecar:
+    """Parses and checks a sidecar file (unknown keys are errors, so a typo does not pass unnoticed)."""
+    raw, doc = _extended(path, *_read_doc(path))
     sc = Sidecar(path=path, text_sha256=hashlib.sha256(raw).hexdigest())
     sc.scene = dict(doc.get("scene", {}))
     bad = set(sc.scene) - SCENE_KEYS
