@@ -86,14 +86,19 @@ class MethodSpec:
 
     def params(self, variant: str = "default", overrides: dict | None = None) -> dict:
         """[defaults] ← variant ← overrides, with each override checked against the defaults' keys and types."""
-        params, aliases, given = self.defaults, self.aliases, {}
+        params, aliases = self.defaults, self.aliases
         folded = {alias.lower(): target for alias, target in aliases.items()}
-        for key, value in {**self.variant_overrides(variant), **(overrides or {})}.items():
-            name = key if key in params else folded.get(key.lower(), key)
-            if name in given and given[name][1] != value:  # one parameter under both its names, differently
-                raise UserError(f"parameter '{name}' of method '{self.name}' is given twice: {given[name][0]} = "
-                                f"{given[name][1]!r} and {key} = {value!r}")
-            given[name] = (key, value)
+        merged = {}
+        for layer in (self.variant_overrides(variant), overrides or {}):  # the later layer wins
+            given = {}
+            for key, value in layer.items():
+                name = key if key in params else folded.get(key.lower(), key)
+                if name in given and given[name][1] != value:  # one parameter under two of its names, differently
+                    raise UserError(f"parameter '{name}' of method '{self.name}' is given twice: {given[name][0]} = "
+                                    f"{given[name][1]!r} and {key} = {value!r}")
+                given[name] = (key, value)
+            merged.update({name: value for name, (_, value) in given.items()})
+        for name, value in merged.items():
             params[name] = check_param(self.name, params, name, value, aliases)
         return params
 

@@ -41,6 +41,9 @@ def test03c_an_alias_and_its_parameter_given_differently_or_a_misspelled_name_ar
                                         "and num_random_dl = 3"):
         spec.params(overrides={"rt_numRandomDL": 2, "num_random_dl": 3})
     assert spec.params(overrides={"rt_numRandomDL": 3, "num_random_dl": 3})["num_random_dl"] == 3
+    # a variant's value and the user's under another name: the user's wins, as under one name
+    assert spec.variant_overrides("one_light")["num_random_dl"] == 1
+    assert spec.params("one_light", {"rt_numRandomDL": 4})["num_random_dl"] == 4
     with pytest.raises(UserError, match="unknown parameter 'num_randm_dl' .*did you mean 'num_random_dl'\\?"):
         spec.params(overrides={"num_randm_dl": 3})
     with pytest.raises(UserError, match="did you mean 'rt_denoiser' \\(the paper's name for 'denoiser'\\)\\?"):
