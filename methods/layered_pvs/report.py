@@ -303,8 +303,8 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
                     "over the frames compared with the reference. Backend: "
                     + esc(", ".join(sorted(set(runs["backend"].astype(str))))) + ".</p>"
                     + table_html(by) + files.csv(by, "by_motion.csv"))
-    sp = runs[runs["scene"] == "dabrovic_sponza"]
-    if len(sp):
+    sw = sweeps(runs)
+    if sw is not None:
         import matplotlib
 
         matplotlib.use("Agg")
@@ -313,24 +313,44 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
         from suite.harness.reporting import label_axes
 
         fig, ax = plt.subplots(1, 3, figsize=(13, 3.5))
-        sp = sp[sp["client_fps"] == PAPER["client_fps"]]
-        rate = sp[(sp["variant"] == "paper") & (sp["net"] == "wan-50m")].sort_values("update_fps")
+        rate, lay, net = (sw[sw["sweep"] == k] for k in ("update_fps", "layers", "net"))
         ax[0].plot(rate["update_fps"], rate["dssim"], "o-")
         label_axes(ax[0], "updates per second (limit)", "mean DSSIM")
-        lay = sp[sp["variant"].isin(["paper", "layers2", "layers4", "layers16"]) & (sp["net"] == "wan-50m")
-                 & (sp["update_fps"] == PAPER["updates_per_s"])].sort_values("layers")
         ax[1].plot(lay["layers"], lay["update_kB"], "o-")
         ax1b = ax[1].twinx()
         ax1b.plot(lay["layers"], lay["dssim"], "s--", color="C1")
         label_axes(ax[1], "layers", "kB per update (o), DSSIM (s)")
-        net = sp[(sp["variant"] == "paper") & (sp["update_fps"] == PAPER["updates_per_s"])]
         ax[2].bar(net["net"].astype(str), net["dssim"])
         label_axes(ax[2], "network profile", "mean DSSIM")
-        fig.suptitle("Dabrovic Sponza, " + ", ".join(sorted(set(sp["backend"].astype(str)))))
-        html.append("<h4>Sweeps</h4>" + files.plot(fig, "sweeps.png"))
+        first = sw.iloc[0]
+        fig.suptitle(f"Dabrovic Sponza, {first['backend']}, {first['resolution']} {first['protocol']}")
+        html.append("<h4>Sweeps</h4>" + files.plot(fig, "sweeps.png") + files.csv(sw, "sweeps.csv"))
         plt.close(fig)
     html += bench_html(load_bench(METHOD, run_dirs, results_root), files, run_dirs, results_root)
     return "\n".join(html)
+
+
+def sweeps(runs: pd.DataFrame) -> pd.DataFrame | None:
+    """The Sponza sweeps (column ``sweep``): update rate (``update_fps``, the paper runs on wan-50m), layers
+    (``layers``, at the paper's rate on wan-50m) and network profile (``net``, the paper runs at the paper's rate),
+    all at 60 client frames/s and at the resolution and protocol of the paper run on wan-50m (else of the first
+    run): the shared compare matrix runs the scene at another resolution, whose DSSIM is not comparable. None
+    without Sponza runs."""
+    sp = runs[(runs["scene"] == "dabrovic_sponza") & (runs["client_fps"] == PAPER["client_fps"])] if len(runs) else runs
+    if not len(sp):
+        return None
+    anchor = sp[(sp["variant"] == "paper") & (sp["net"] == "wan-50m")]
+    anchor = (anchor if len(anchor) else sp).iloc[0]
+    sp = sp[(sp["resolution"] == anchor["resolution"]) & (sp["protocol"] == anchor["protocol"])]
+    paper, wan, rate = sp["variant"] == "paper", sp["net"] == "wan-50m", sp["update_fps"] == PAPER["updates_per_s"]
+    parts = [sp[paper & wan].sort_values("update_fps").assign(sweep="update_fps"),
+             sp[sp["variant"].isin(["paper", "layers2", "layers4", "layers16"]) & wan & rate]
+             .sort_values("layers").assign(sweep="layers"),
+             sp[paper & rate].assign(sweep="net")]
+    cols = ["sweep", "scene", "backend", "resolution", "protocol", "variant", "net", "update_fps", "layers", "dssim",
+            "update_kB", "staleness_ms"]
+    out = pd.concat(parts, ignore_index=True)
+    return out[[c for c in cols if c in out]]
 
 
 def bench_html(bench, files, run_dirs, results_root) -> list:

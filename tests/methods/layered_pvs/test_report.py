@@ -84,3 +84,20 @@ def test04_without_the_static_runs_their_claims_and_the_ordering_say_what_they_n
                 _path("dabrovic_sponza", 0.31, 0.42))
     assert c["002.dssim_static"].kind == verdicts.NOT_MEASURABLE
     assert c["002.dynamic_lights_cost"].kind == verdicts.NOT_MEASURABLE
+
+
+def test05_the_sweeps_keep_to_the_paper_runs_resolution_and_protocol():
+    """The shared compare matrix runs Sponza at 160x90 over lan-home and lte too: those runs stay out of the
+    96x54 sweeps, where they would stand beside the quick preset's runs of the same profile."""
+    rows = [_run("dabrovic_sponza", 0.23, 0.3), _run("dabrovic_sponza", 0.25, 0.3, update_fps=2.0),
+            _run("dabrovic_sponza", 0.24, 0.3, net="lan-home"), _run("dabrovic_sponza", 0.22, 0.3, variant="layers2"),
+            _run("dabrovic_sponza", 0.27, 0.3, net="lan-home", resolution="160x90"),
+            _run("dabrovic_sponza", 0.20, 0.3, frames=60, client_fps=15.0), _run(report.STATIC_SPONZA, 0.2, 0.3)]
+    runs = pd.DataFrame(rows).assign(layers=[8, 8, 8, 2, 8, 8, 8])
+    sw = report.sweeps(runs)
+    assert set(sw["resolution"]) == {"96x54"} and set(sw["scene"]) == {"dabrovic_sponza"}
+    assert sw[sw["sweep"] == "update_fps"]["update_fps"].tolist() == [2.0, 5.5]
+    assert sw[sw["sweep"] == "layers"]["layers"].tolist() == [2, 8]
+    assert sorted(sw[sw["sweep"] == "net"]["net"]) == ["lan-home", "wan-50m"]
+    assert sw[(sw["sweep"] == "net") & (sw["net"] == "lan-home")]["dssim"].tolist() == [0.24]
+    assert report.sweeps(pd.DataFrame([_run(report.STATIC_SPONZA, 0.2, 0.3)])) is None
