@@ -303,7 +303,7 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
                     "over the frames compared with the reference. Backend: "
                     + esc(", ".join(sorted(set(runs["backend"].astype(str))))) + ".</p>"
                     + table_html(by) + files.csv(by, "by_motion.csv"))
-    sw = sweeps(runs)
+    sw = sweeps(runs, f)
     if sw is not None:
         import matplotlib
 
@@ -314,28 +314,36 @@ def section(results_df, run_dirs, out_dir=None, results_root=None) -> str:
 
         fig, ax = plt.subplots(1, 3, figsize=(13, 3.5))
         rate, lay, net = (sw[sw["sweep"] == k] for k in ("update_fps", "layers", "net"))
-        ax[0].plot(rate["update_fps"], rate["dssim"], "o-")
+        q = "dssim_common" if "dssim_common" in sw else "dssim"
+        ax[0].plot(rate["update_fps"], rate[q], "o-")
         label_axes(ax[0], "updates per second (limit)", "mean DSSIM")
         ax[1].plot(lay["layers"], lay["update_kB"], "o-")
         ax1b = ax[1].twinx()
-        ax1b.plot(lay["layers"], lay["dssim"], "s--", color="C1")
+        ax1b.plot(lay["layers"], lay[q], "s--", color="C1")
         label_axes(ax[1], "layers", "kB per update (o), DSSIM (s)")
-        ax[2].bar(net["net"].astype(str), net["dssim"])
+        ax[2].bar(net["net"].astype(str), net[q])
         label_axes(ax[2], "network profile", "mean DSSIM")
         first = sw.iloc[0]
         fig.suptitle(f"Dabrovic Sponza, {first['backend']}, {first['resolution']} {first['protocol']}")
-        html.append("<h4>Sweeps</h4>" + files.plot(fig, "sweeps.png") + files.csv(sw, "sweeps.csv"))
+        html.append("<h4>Sweeps</h4><p>Mean DSSIM over the client frames at which every run of a sweep shows an "
+                    "update (<code>dssim_common</code>; each run's own mean, <code>dssim</code>, covers the frames "
+                    "from its own first update on).</p>" + files.plot(fig, "sweeps.png") + files.csv(sw, "sweeps.csv"))
         plt.close(fig)
     html += bench_html(load_bench(METHOD, run_dirs, results_root), files, run_dirs, results_root)
     return "\n".join(html)
 
 
-def sweeps(runs: pd.DataFrame) -> pd.DataFrame | None:
+def sweeps(runs: pd.DataFrame, frames: pd.DataFrame | None = None) -> pd.DataFrame | None:
     """The Sponza sweeps (column ``sweep``): update rate (``update_fps``, the paper runs on wan-50m), layers
     (``layers``, at the paper's rate on wan-50m) and network profile (``net``, the paper runs at the paper's rate),
     all at 60 client frames/s and at the resolution and protocol of the paper run on wan-50m (else of the first
     run): the shared compare matrix runs the scene at another resolution, whose DSSIM is not comparable. None
-    without Sponza runs."""
+    without Sponza runs.
+
+    With the stored per-frame results ``frames`` (columns run, frame, update_index, dssim), ``dssim_common`` is
+    each run's mean over the quality frames at which every run of its sweep shows an update (``common_frames`` of
+    them): a faster network or rate shows its first update earlier, and its own mean then covers earlier frames
+    of the path than a slower one's."""
     sp = runs[(runs["scene"] == "dabrovic_sponza") & (runs["client_fps"] == PAPER["client_fps"])] if len(runs) else runs
     if not len(sp):
         return None
@@ -347,9 +355,18 @@ def sweeps(runs: pd.DataFrame) -> pd.DataFrame | None:
              sp[sp["variant"].isin(["paper", "layers2", "layers4", "layers16"]) & wan & rate]
              .sort_values("layers").assign(sweep="layers"),
              sp[paper & rate].assign(sweep="net")]
-    cols = ["sweep", "scene", "backend", "resolution", "protocol", "variant", "net", "update_fps", "layers", "dssim",
-            "update_kB", "staleness_ms"]
+    cols = ["sweep", "run", "scene", "backend", "resolution", "protocol", "variant", "net", "update_fps", "layers",
+            "dssim", "dssim_common", "common_frames", "update_kB", "staleness_ms"]
     out = pd.concat(parts, ignore_index=True)
+    if frames is not None and len(frames):
+        shown = frames[(frames["update_index"] >= 0) & frames["dssim"].notna()]
+        for sweep, group in out.groupby("sweep"):
+            per_run = [set(shown.loc[shown["run"] == r, "frame"]) for r in group["run"]]
+            common = set.intersection(*per_run) if per_run else set()
+            for i, r in zip(group.index, group["run"]):
+                sel = shown[(shown["run"] == r) & shown["frame"].isin(common)]
+                out.loc[i, "dssim_common"] = sel["dssim"].mean() if len(sel) else np.nan
+                out.loc[i, "common_frames"] = len(common)
     return out[[c for c in cols if c in out]]
 
 

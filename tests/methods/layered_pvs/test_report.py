@@ -101,3 +101,16 @@ def test05_the_sweeps_keep_to_the_paper_runs_resolution_and_protocol():
     assert sorted(sw[sw["sweep"] == "net"]["net"]) == ["lan-home", "wan-50m"]
     assert sw[(sw["sweep"] == "net") & (sw["net"] == "lan-home")]["dssim"].tolist() == [0.24]
     assert report.sweeps(pd.DataFrame([_run(report.STATIC_SPONZA, 0.2, 0.3)])) is None
+
+
+def test06_the_sweeps_compare_runs_over_the_frames_that_all_of_them_show():
+    # lan-home shows its first update at frame 3, wan-50m at frame 9: over frames 9 and 12 only
+    runs = pd.DataFrame([_run("dabrovic_sponza", 0.23, 0.3, run="wan"),
+                         _run("dabrovic_sponza", 0.24, 0.3, net="lan-home", run="lan")]).assign(layers=8)
+    frames = pd.DataFrame({"run": ["lan"] * 4 + ["wan"] * 4, "frame": [0, 3, 9, 12] * 2,
+                           "update_index": [-1, 0, 0, 1, -1, -1, 0, 0], "dssim": [0.5, 0.4, 0.2, 0.2, 0.5, 0.5, 0.3,
+                                                                                   0.3]})
+    sw = report.sweeps(runs, frames)
+    net = sw[sw["sweep"] == "net"].set_index("net")
+    assert net.loc["lan-home", "dssim_common"] == 0.2 and net.loc["wan-50m", "dssim_common"] == 0.3
+    assert (net["common_frames"] == 2).all()
