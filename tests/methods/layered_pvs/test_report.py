@@ -114,3 +114,12 @@ def test06_the_sweeps_compare_runs_over_the_frames_that_all_of_them_show():
     net = sw[sw["sweep"] == "net"].set_index("net")
     assert net.loc["lan-home", "dssim_common"] == 0.2 and net.loc["wan-50m", "dssim_common"] == 0.3
     assert (net["common_frames"] == 2).all()
+
+
+def test07_the_game_level_is_judged_on_the_quick_presets_setting_before_the_compare_matrixs():
+    compare = _run("oa:aggressor@pak1-maps", 0.30, 0.9, net="lan-home", resolution="160x90")
+    quick = _run("oa:aggressor@pak1-maps", 0.13, 0.05)
+    for order in ((compare, quick), (quick, compare)):
+        c = _claims(*order)
+        assert c["002.dssim_village"].suite_value == 0.13 and c["002.dssim_village"].setting["net"] == "wan-50m"
+    assert _claims(compare)["002.dssim_village"].suite_value == 0.30  # the only run of the level
