@@ -87,13 +87,14 @@ def cmd_list(args) -> int:
         print(f"  {name:<20} {m.get('mode') or '?':<6} {m['description']}" + (f"  [{m['error']}]" if 'error' in m else ""))
     for title, key in (("scenes", "scenes"), ("backends", "backends"), ("net profiles", "net_profiles")):
         print(f"{title}:" + (" (on this machine)" if key == "backends" else ""))
+        width = max([20, *(len(str(name)) for name in info[key])])  # one column of names, however long
         for name, desc in info[key].items():
             status = info["backend_status"].get(name) if key == "backends" else None
             if isinstance(status, dict):
                 mark = "ok" if status["available"] else "unavailable"
-                print(f"  {name:<20} [{mark}: {status['detail']}] {desc}")
+                print(f"  {name:<{width}} [{mark}: {status['detail']}] {desc}")
             else:
-                print(f"  {name:<20} {desc}")
+                print(f"  {name:<{width}} {desc}")
     return 0
 
 
