@@ -123,3 +123,19 @@ def test07_the_game_level_is_judged_on_the_quick_presets_setting_before_the_comp
         c = _claims(*order)
         assert c["002.dssim_village"].suite_value == 0.13 and c["002.dssim_village"].setting["net"] == "wan-50m"
     assert _claims(compare)["002.dssim_village"].suite_value == 0.30  # the only run of the level
+
+
+def test08_the_subset_peeling_saving_stands_only_outside_two_standard_errors_of_another_verdict():
+    def pair(sub_ms, base_ms, sd_ms, count):
+        peel = {"peel_wall_sd_ms": sd_ms, "peel_count": count, "subset_B": 900.0}
+        return _claims(_run("dabrovic_sponza", 0.2, 0.3, variant="subset_peeling", peel_wall_ms=sub_ms, **peel),
+                       _run("dabrovic_sponza", 0.2, 0.3, peel_wall_ms=base_ms, **peel))["002.subset_peeling_time"]
+    # two peels a run, 11.2 against 16.5 ms with a few ms of scatter: the 32 % saving is noise here
+    noisy = pair(11.2, 16.5, 3.0, 2)
+    assert noisy.kind == verdicts.NOT_MEASURABLE and "within two standard errors" in noisy.explanation
+    assert "(2 and 2 peels, 11.2 and 16.5 ms" in noisy.explanation
+    # many peels with little scatter: the same means are a measurement
+    sure = pair(11.2, 16.5, 0.3, 40)
+    assert sure.kind == verdicts.REPRODUCES and np.isclose(sure.suite_value, 100 * (1 - 11.2 / 16.5))
+    assert pair(16.0, 16.5, 0.1, 40).kind == verdicts.DOES_NOT_REPRODUCE
+    assert pair(11.2, 16.5, np.nan, 1).kind == verdicts.NOT_MEASURABLE  # one peel: no scatter to judge by
