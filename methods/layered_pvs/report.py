@@ -167,13 +167,13 @@ def claims(runs: pd.DataFrame) -> list:
         claim = verdicts.judge(*CLAIMS.head(id), paper, float(r[metric]), "", tolerance, setting=setting(r),
                                method=METHOD, note=" ".join(x for x in (note, floor_text + "." if floor_text else "")
                                                             if x))
-        if np.isfinite(floor) and verdicts.judge(*CLAIMS.head(id), paper, max(float(r[metric]) - floor, 0.0), "",
-                                                 tolerance).kind != claim.kind:
-            return verdicts.not_measurable(
-                *CLAIMS.head(id), f"{floor_text}: the measured {float(r[metric]):.3f} less that floor would give "
-                "another verdict, so the reference cannot decide it (more reference samples lower the floor)",
-                paper_value=paper, setting=setting(r), method=METHOD, note=note)
-        return claim
+        if not np.isfinite(floor):
+            return claim
+        less_floor = verdicts.judge(*CLAIMS.head(id), paper, max(float(r[metric]) - floor, 0.0), "", tolerance)
+        return verdicts.settled(claim, [less_floor.kind],
+                                f"{floor_text}: the measured {float(r[metric]):.3f} less that floor would give "
+                                "another verdict, so the reference cannot decide it (more reference samples lower the "
+                                "floor)", note)
 
     stands_in = {"dabrovic_sponza": "Dabrovic Sponza (moving lights) stands in",
                  STATIC_SPONZA: "Dabrovic Sponza with its lights held still stands in"}
@@ -203,19 +203,19 @@ def claims(runs: pd.DataFrame) -> list:
                 f"{s_['zl_dssim']:.3f} static, {d['zl_dssim']:.3f} moving. The same camera path, update rate and "
                 f"network; the thesis: DSSIM {PAPER['dssim_static']} and {PAPER['dssim_dynamic']}, NRMSE "
                 f"{PAPER['nrmse_static']} and {PAPER['nrmse_dynamic']}.")
-        why = "an ordering: mean DSSIM with moving lights minus with static ones"
-        claim = verdicts.at_least(*CLAIMS.head("002.dynamic_lights_cost"), 0.0, diff, "", why, setting=setting(d),
-                                  method=METHOD, note=note)
+        order = lambda value: verdicts.at_least(  # noqa: E731
+            *CLAIMS.head("002.dynamic_lights_cost"), 0.0, value, "",
+            "an ordering: mean DSSIM with moving lights minus with static ones", setting=setting(d), method=METHOD,
+            note=note)
         # Each run's reference noise raises its DSSIM by up to about its floor: the true difference lies in
         # [diff - floor(moving), diff + floor(static)], and only a verdict both ends share stands.
-        lo, hi = diff - d["floor_dssim"], diff + s_["floor_dssim"]
-        if np.isfinite(lo) and np.isfinite(hi) and (lo >= 0.0) != (hi >= 0.0):
-            claim = verdicts.not_measurable(
-                *CLAIMS.head("002.dynamic_lights_cost"),
-                f"the difference {diff:+.3f} lies within the references' noise floors (DSSIM {s_['floor_dssim']:.3f} "
-                f"static, {d['floor_dssim']:.3f} moving between two renders of the same poses): the references "
-                "cannot decide its sign", paper_value=0.0, setting=setting(d), method=METHOD, note=note)
-        c.append(claim)
+        ends = [diff - d["floor_dssim"], diff + s_["floor_dssim"]]
+        ends = ends if np.isfinite(ends).all() else []
+        c.append(verdicts.settled(
+            order(diff), [order(x).kind for x in ends],
+            f"the difference {diff:+.3f} lies within the references' noise floors (DSSIM {s_['floor_dssim']:.3f} "
+            f"static, {d['floor_dssim']:.3f} moving between two renders of the same poses): the references cannot "
+            "decide its sign", note))
     if measured(oa):
         r = oa.iloc[0]
         note = f"{not_avail}; the OpenArena level {r['scene']} stands in for a game level."
@@ -273,17 +273,15 @@ def claims(runs: pd.DataFrame) -> list:
                 f"{int(b['peel_count'])} peels, {s_['peel_wall_ms']:.1f} and {b['peel_wall_ms']:.1f} ms; standard "
                 f"error of the saving {se:.1f} percentage points); client peeling is Embree ray casting here (a BVH "
                 "per subset), not GPU rasterisation.")
-        claim = verdicts.judge(*CLAIMS.head("002.subset_peeling_time"), PAPER["subset_saving_pct"], saving, "%", tol,
-                               setting=setting(s_), method=METHOD, note=note)
-        kinds = {verdicts.judge(*CLAIMS.head("002.subset_peeling_time"), PAPER["subset_saving_pct"], x, "%",
-                                tol).kind for x in (saving - 2 * se, saving + 2 * se) if np.isfinite(x)}
-        if not np.isfinite(se) or kinds != {claim.kind}:
-            claim = verdicts.not_measurable(
-                *CLAIMS.head("002.subset_peeling_time"),
-                f"the measured saving {saving:.1f} % is within two standard errors of another verdict: the runs hold "
-                "too few peels for their wall-time difference to stand out of this machine's noise",
-                paper_value=PAPER["subset_saving_pct"], unit="%", setting=setting(s_), method=METHOD, note=note)
-        c.append(claim)
+        saved = lambda value: verdicts.judge(  # noqa: E731
+            *CLAIMS.head("002.subset_peeling_time"), PAPER["subset_saving_pct"], value, "%", tol,
+            setting=setting(s_), method=METHOD, note=note)
+        # no scatter to judge by (one peel in a run): an interval without ends, no verdict at them
+        ends = [saved(saving - 2 * se).kind, saved(saving + 2 * se).kind] if np.isfinite(se) else [None]
+        c.append(verdicts.settled(
+            saved(saving), ends,
+            f"the measured saving {saving:.1f} % is within two standard errors of another verdict: the runs hold "
+            "too few peels for their wall-time difference to stand out of this machine's noise", note))
         c.append(verdicts.judge(*CLAIMS.head("002.subset_bytes"),
                                 PAPER["subset_kb"], float(sub["subset_B"].iloc[0]) / 1e3, "kB",
                                 Tolerance(absolute=1.0, why="the thesis states 3-5 kB"), setting=setting(sub.iloc[0]),

@@ -70,7 +70,8 @@ def cmd_list(args) -> int:
     methods = {}
     for name, spec in registry.discover().items():
         entry = {"description": spec.description, "params": spec.defaults, "doc": spec.docs,
-                 "aliases": spec.config.get("aliases", {}), "variants": spec.variants, "presets": sorted(spec.config.get("presets", {})), "path": str(spec.path)}
+                 "aliases": spec.config.get("aliases", {}), "variants": spec.variants,
+                 "presets": sorted(spec.config.get("presets", {})), "path": str(spec.path)}
         try:
             entry["mode"] = spec.load().mode
         except Exception as exc:  # noqa: BLE001 - a broken method must not hide the others

@@ -230,6 +230,17 @@ def at_least(id: str, statement: str, source: str, bound: float, value: float, u
                  explanation=_sentence(text, note))
 
 
+def settled(claim: Claim, kinds_at_ends, reason: str, note: str = "") -> Claim:
+    """``claim`` where the measurement's uncertainty cannot change its verdict: ``kinds_at_ends`` are the verdicts
+    at the ends of the interval the measured value may lie in (judged like ``claim``); if any differs from
+    ``claim``'s, the same claim as :data:`NOT_MEASURABLE`, with ``reason`` (why the interval is that wide) and
+    ``note``."""
+    if all(kind == claim.kind for kind in kinds_at_ends):
+        return claim
+    return not_measurable(claim.id, claim.statement, claim.source, reason, paper_value=claim.paper_value,
+                          unit=claim.unit, setting=claim.setting, method=claim.method, note=note)
+
+
 def by_calibration(id: str, statement: str, source: str, calibrated_input: str, *, paper_value=None,
                    suite_value=None, unit: str = "", setting: dict | None = None, suite_source: str = "run",
                    method: str = "", note: str = "") -> Claim:

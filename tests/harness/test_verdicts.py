@@ -66,6 +66,17 @@ def test02b_a_bound_reproduces_on_its_side_only_and_a_value_that_is_not_finite_i
         verdicts.at_least("x.order", "s", "src", float("inf"), 1.0, "x", why)
 
 
+def test02c_a_verdict_the_uncertainty_could_change_is_not_measurable_and_keeps_its_note():
+    claim = verdicts.judge("x.err", "error 0.088", "Table 7.1", 0.088, 0.2, "", Tolerance(absolute=0.03),
+                           setting=SETTING, method="m", note="at 96x54.")
+    assert verdicts.settled(claim, [verdicts.DOES_NOT_REPRODUCE], "floor 0.05") is claim
+    assert verdicts.settled(claim, [], "no interval") is claim
+    open_ = verdicts.settled(claim, [verdicts.DOES_NOT_REPRODUCE, verdicts.REPRODUCES], "floor 0.15", "at 96x54.")
+    assert open_.kind == verdicts.NOT_MEASURABLE and open_.suite_value is None
+    assert open_.explanation == "floor 0.15. at 96x54." and open_.paper_value == 0.088
+    assert (open_.id, open_.setting, open_.method) == ("x.err", SETTING, "m")
+
+
 def test03_a_relative_tolerance_scales_with_the_papers_value_and_its_edge_reproduces():
     tol = Tolerance(relative=0.10)
     assert verdicts.judge("x.ms", "s", "src", 87.33, 87.33 * 1.1, "ms", tol).kind == verdicts.REPRODUCES
